@@ -1,0 +1,39 @@
+"""Test-session set-up: a private ROS domain on localhost, so parallel runs never cross-talk.
+
+The domain id is claimed with an exclusive file lock among ids 1..100, held for the whole
+session; child processes (node executables, the launcher) inherit the environment.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import tempfile
+from pathlib import Path
+
+_LOCK_HANDLE = None
+
+
+def _claim_domain_id() -> int:
+    global _LOCK_HANDLE
+    lock_dir = Path(tempfile.gettempdir())
+    start = os.getpid() % 100
+    for offset in range(100):
+        domain = 1 + (start + offset) % 100
+        handle = open(lock_dir / f"vehicle_estimation_ros_domain_{domain}.lock", "w")  # noqa: SIM115
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        _LOCK_HANDLE = handle
+        return domain
+    raise RuntimeError("no free ROS_DOMAIN_ID in 1..100 for this test run")
+
+
+if "VEHICLE_ESTIMATION_TEST_DOMAIN" not in os.environ:
+    os.environ["ROS_DOMAIN_ID"] = str(_claim_domain_id())
+    os.environ["VEHICLE_ESTIMATION_TEST_DOMAIN"] = os.environ["ROS_DOMAIN_ID"]
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.pop("ROS_STATIC_PEERS", None)
+os.environ.setdefault("MPLBACKEND", "Agg")

@@ -1,0 +1,140 @@
+"""Tests of the cubature Kalman filter and the paper-004 vehicle-state CKF."""
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vehicle_estimation.core.ckf import CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.core.vehicle_model import (
+    VehicleInputs,
+    free_rolling_wheel_speeds,
+    measurement,
+    transition,
+)
+from vehicle_estimation.vehicle import load_vehicle_params
+
+PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
+SEDAN = load_vehicle_params(PARAMS_DIR / "sedan_d_class.yaml")
+R_PAPER = np.diag([4e-2, 4e-2, 6e-5])
+
+
+def test_ckf_equals_kf_on_linear_gaussian_model():
+    rng = np.random.default_rng(0)
+    n, m = 4, 2
+    F = np.eye(n) + 0.1 * rng.normal(size=(n, n))
+    H = rng.normal(size=(m, n))
+    Q = np.diag([0.1, 0.2, 0.05, 0.3])
+    R = np.array([[0.5, 0.1], [0.1, 0.4]])
+    x0 = rng.normal(size=n)
+    P0 = np.diag([2.0, 1.0, 3.0, 0.5])
+    ckf = CubatureKalmanFilter(lambda X, dt: X @ F.T, lambda X: X @ H.T, Q, R, x0, P0)
+    ckf_scalar = CubatureKalmanFilter(lambda x, dt: F @ x, lambda x: H @ x, Q, R, x0, P0,
+                                      vectorized=False)
+    x, P = x0.copy(), P0.copy()
+    for _ in range(50):
+        z = rng.normal(size=m) * 3
+        x = F @ x
+        P = F @ P @ F.T + Q
+        S = H @ P @ H.T + R
+        K = P @ H.T @ np.linalg.inv(S)
+        innov = z - H @ x
+        x = x + K @ innov
+        P = (np.eye(n) - K @ H) @ P
+        for f in (ckf, ckf_scalar):
+            f.predict(0.1)
+            nu = f.update(z)
+            assert np.allclose(nu, innov, atol=1e-9, rtol=0)
+            assert np.allclose(f.x, x, atol=1e-9, rtol=0)
+            assert np.allclose(f.P, P, atol=1e-9, rtol=0)
+
+
+def _drive(seconds=30.0, dt=0.01, seed=0, v0=20.0, nan_every=0):
+    """Truth from the model itself (wheel speeds with driving slip, sine steer, slope),
+    z = h(x) + N(0, R_paper). Yields (t, inputs, z, x_true)."""
+    rng = np.random.default_rng(seed)
+    x = np.array([v0, 0.0, 0.0, 0.0, 0.0])
+    for k in range(int(round(seconds / dt))):
+        t = k * dt
+        delta = 0.03 * math.sin(2 * math.pi * 0.3 * t)
+        slip = np.array([1, 1, 0, 0]) * (0.002 + 0.004 * math.sin(2 * math.pi * 0.1 * t))
+        theta = 0.03 * math.sin(2 * math.pi * 0.02 * t)
+        u = VehicleInputs(delta, free_rolling_wheel_speeds(x, delta, SEDAN, slip), theta)
+        if k > 0:
+            x = transition(x, u, SEDAN, dt)
+        z = measurement(x, u, SEDAN) + rng.multivariate_normal(np.zeros(3), R_PAPER)
+        if nan_every and k % nan_every == 5:
+            z[1] = np.nan
+        yield t, u, z, x
+
+
+def test_vehicle_state_ckf_tracks_synthetic_drive():
+    f = VehicleStateCKF(SEDAN)        # Sec. 7.1 defaults, starts at 80/3.6 while truth is 20 m/s
+    errs, beta_err = [], []
+    elapsed = 0.0
+    n = 0
+    for t, u, z, x in _drive():
+        t0 = time.perf_counter()
+        assert f.step(t, u, z)
+        elapsed += time.perf_counter() - t0
+        n += 1
+        if t > 2.0:
+            errs.append(f.x - x)
+            beta_err.append(f.sideslip - math.atan(x[1] / x[0]))
+    e = np.array(errs)
+    rms = np.sqrt(np.mean(e ** 2, axis=0))
+    # thresholds: vx 0.05 m/s, vy 0.08 m/s, r 0.01 rad/s (~ gyro sigma 7.7e-3), beta 0.005 rad
+    assert rms[0] < 0.05, rms
+    assert rms[1] < 0.08, rms
+    assert rms[2] < 0.01, rms
+    assert np.sqrt(np.mean(np.square(beta_err))) < 0.005
+    assert 0.0 < f.sideslip_variance < 1e-3
+    print(f"VehicleStateCKF.step: {elapsed / n * 1e6:.0f} us/step; rms {rms}")
+
+
+def test_nan_measurement_rejected_state_finite():
+    f = VehicleStateCKF(SEDAN)
+    accepted = 0
+    for t, u, z, x in _drive(seconds=5.0, nan_every=10):
+        accepted += f.step(t, u, z)
+    assert f.rejected["nonfinite_measurement"] == 50
+    assert accepted == 450
+    assert np.all(np.isfinite(f.x)) and np.all(np.isfinite(f.P))
+    assert abs(f.x[0] - x[0]) < 0.1
+
+
+def test_stamps_gap_and_invalid_input():
+    f = VehicleStateCKF(SEDAN)
+    u = VehicleInputs(0.0, free_rolling_wheel_speeds(np.array([22.0, 0, 0, 0, 0]), 0.0, SEDAN), 0.0)
+    z = np.array([0.0, 0.0, 0.0])
+    assert f.step(1.0, u, z)
+    assert not f.step(1.0, u, z)
+    assert not f.step(0.5, u, z)
+    assert f.rejected["stamp_not_increasing"] == 2
+    assert not f.step(1.01, VehicleInputs(float("nan"), u.wheel_speeds, 0.0), z)
+    assert f.rejected["invalid_input"] == 1
+    assert f.step(1.01, u, z)
+    assert f.step(3.0, u, z)                      # gap > max_gap_s
+    assert f.reinitialisations == 1 and "gap" in f.last_event
+    assert np.all(np.isfinite(f.x))
+
+
+def test_wheel_speed_fallback_keeps_tracking_ax():
+    f = VehicleStateCKF(SEDAN)
+    for t, u, z, x in _drive(seconds=3.0):
+        u_nan = VehicleInputs(u.steer_angle, [np.nan] * 4, u.slope)
+        assert f.step(t, u_nan, z)
+    assert np.all(np.isfinite(f.x))
+    assert abs(f.x[3] + 9.80665 * math.sin(u.slope) - z[0]) < 1.0   # ax follows the IMU
+
+
+def test_config_validate_names_field():
+    with pytest.raises(ValueError, match="Q"):
+        VehicleStateConfig(Q=-np.eye(5)).validate()
+    with pytest.raises(ValueError, match="R"):
+        VehicleStateConfig(R=np.eye(2)).validate()
+    with pytest.raises(ValueError, match="max_gap_s"):
+        VehicleStateConfig(max_gap_s=0.0).validate()
+    VehicleStateConfig(P0=[1, 1, 1, 1, 1]).validate()

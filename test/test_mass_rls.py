@@ -1,0 +1,200 @@
+"""Tests of the paper-003 mass estimation core (vehicle_estimation.core.mass_rls)."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vehicle_estimation.core.mass_rls import (
+    EngineTorqueRegression,
+    LongitudinalMassEstimator,
+    MassRLSConfig,
+    RecursiveLeastSquares,
+    predict_gear,
+)
+from vehicle_estimation.vehicle import load_vehicle_params
+
+PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
+AUDI = load_vehicle_params(PARAMS_DIR / "audi_a4.yaml")
+RPM = math.pi / 30.0
+
+
+def test_rls_recovers_known_mass_from_eq4_data():
+    rng = np.random.default_rng(0)
+    true_mass = 1580.0
+    rls = RecursiveLeastSquares(0.9995, 1000.0, 1000.0)
+    for _ in range(5000):
+        phi = rng.uniform(0.2, 2.0)
+        y = phi * true_mass + rng.normal(0.0, 150.0)   # Eq. (4) with noise on y
+        rls.update(phi, y)
+    assert abs(rls.theta - true_mass) / true_mass < 0.01
+    assert 0.0 < rls.p < 1e-2
+
+
+def test_rls_first_update_matches_eqs_7_to_9():
+    rls = RecursiveLeastSquares(0.9, 1000.0, 1000.0)
+    phi, y = 2.0, 3000.0
+    p_expected = (1000.0 - 1000.0 * 4.0 * 1000.0 / (0.9 + 4.0 * 1000.0)) / 0.9
+    m_expected = 1000.0 + p_expected * 2.0 * (3000.0 - 2000.0)
+    assert rls.update(phi, y) == pytest.approx(m_expected)
+    assert rls.p == pytest.approx(p_expected)
+    assert rls.last_residual == pytest.approx(1000.0)
+
+
+def test_forgetting_tracks_step_change_of_mass():
+    rng = np.random.default_rng(1)
+    rls = RecursiveLeastSquares(0.9995, 1000.0, 1000.0)
+    for mass in (1580.0, 1820.0):
+        for _ in range(12000):
+            phi = rng.uniform(0.2, 2.0)
+            rls.update(phi, phi * mass + rng.normal(0.0, 100.0))
+        assert abs(rls.theta - mass) / mass < 0.01
+    # Without forgetting the old data dominate: the estimate stays near the mean.
+    rls1 = RecursiveLeastSquares(1.0, 1000.0, 1000.0)
+    for mass in (1580.0, 1820.0):
+        for _ in range(12000):
+            phi = rng.uniform(0.2, 2.0)
+            rls1.update(phi, phi * mass)
+    assert abs(rls1.theta - 1820.0) > 50.0
+
+
+def test_predict_gear_audi_a4():
+    # Table 1 of paper 003: effective gearing of gear 1 is about 42.3 1/m
+    assert AUDI.effective_gearing(1) == pytest.approx(3.188 * 4.234 / 0.319)
+    for gear in range(1, 8):
+        for v in (3.0, 10.0, 25.0):
+            omega = AUDI.effective_gearing(gear) * v            # Eq. (10) without slip
+            if omega < AUDI.engine_idle_speed or omega > AUDI.engine_max_speed:
+                continue
+            assert predict_gear(omega, v, AUDI) == gear
+            assert predict_gear(omega * 1.04, v, AUDI) == gear  # small slip/noise
+    # 2000 rpm at 50 km/h: G = 209.4/13.89 = 15.1 -> i_t = 15.1*0.319/4.234 = 1.14 -> 4th
+    assert predict_gear(2000 * RPM, 50 / 3.6, AUDI) == 4
+    # standstill, idle while rolling (clutch open), engine off, NaN
+    assert predict_gear(850 * RPM, 0.0, AUDI) is None
+    assert predict_gear(850 * RPM, 25.0, AUDI) is None   # G = 3.6, far below gear 7 (5.75)
+    assert predict_gear(0.0, 10.0, AUDI) is None
+    assert predict_gear(math.nan, 10.0, AUDI) is None
+    # between gears 2 and 3 (29.0 vs 20.1): mid-shift slip
+    assert predict_gear(24.5 * 10.0, 10.0, AUDI) is None
+
+
+def test_engine_torque_regression_eq49_table6():
+    w = [-17.85, 9.64, 2.50e-3, -1.44e-6]
+    reg = EngineTorqueRegression(w)
+    n_rpm = 2000.0
+    expected = -17.85 + 9.64 * 30.0 + 2.50e-3 * n_rpm - 1.44e-6 * n_rpm ** 2
+    assert reg.torque(30.0, n_rpm * RPM) == pytest.approx(expected)
+    reg_si = EngineTorqueRegression([1.0, 2.0, 3.0], speed_unit="rad/s")
+    assert reg_si.torque(4.0, 5.0) == pytest.approx(1.0 + 8.0 + 15.0)
+    assert EngineTorqueRegression.from_coefficients([]) is None
+
+
+def _synthetic_drive(params, mass, n=20000, dt=0.05, seed=2, noise_y=30.0):
+    """Samples of (t, v, a, slope, engine torque, engine speed, gear) satisfying Eq. (3)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    v = 15.0 + 8.0 * np.sin(2 * np.pi * t / 60.0) + 2.0 * np.sin(2 * np.pi * t / 13.0)
+    a = np.gradient(v, dt)
+    slope = 0.04 * np.sin(2 * np.pi * t / 200.0)
+    gear = np.clip(np.searchsorted([6.0, 10.0, 14.0, 19.0, 25.0, 31.0], v) + 1, 1, 7)
+    G = np.array([params.effective_gearing(int(g)) for g in gear])
+    g = params.gravity
+    inertia = mass + params.wheel_inertia / params.wheel_radius ** 2 + params.engine_inertia * G ** 2
+    force = (inertia * a + 0.5 * params.air_density * params.drag_area * v ** 2
+             + mass * g * (params.rolling_resistance * np.cos(slope) + np.sin(slope)))
+    force = force + rng.normal(0.0, noise_y, n)
+    torque = force / (params.driveline_efficiency * G)                     # Eq. (3)
+    omega = G * v
+    return t, v, a, slope, torque, omega, gear, force
+
+
+def test_estimator_recovers_mass_with_predicted_gear():
+    t, v, a, slope, torque, omega, _gear, _ = _synthetic_drive(AUDI, 1580.0)
+    est = LongitudinalMassEstimator(AUDI)
+    used = 0
+    for k in range(len(t)):
+        used += est.step(t[k], v[k], a[k], slope[k], engine_torque=torque[k], engine_speed=omega[k])
+    assert used == est.samples_used > 3000
+    assert abs(est.mass - 1580.0) / 1580.0 < 0.01
+    assert est.rejected["accel"] > 0            # decelerating half rejected (paper Sec. 7.1)
+    assert est.rejected["gear_shift"] > 0
+    assert math.isfinite(est.variance) and 0.0 < est.variance < 50.0 ** 2
+    assert est.converged
+
+
+def test_estimator_drive_force_and_regression_paths():
+    t, v, a, slope, torque, omega, gear, force = _synthetic_drive(AUDI, 1700.0, n=12000)
+    est = LongitudinalMassEstimator(AUDI, MassRLSConfig(drive_force_kind="propulsion"))
+    for k in range(len(t)):
+        est.step(t[k], v[k], a[k], slope[k], drive_force=force[k], gear=gear[k])
+    assert abs(est.mass - 1700.0) / 1700.0 < 0.01
+    # Eq. (49) with a linear "load" that reproduces eta*T exactly (rad/s regression)
+    cfg = MassRLSConfig(torque_regression=[0.0, 1.0], torque_regression_speed_unit="rad/s")
+    est2 = LongitudinalMassEstimator(AUDI, cfg)
+    load = torque * AUDI.driveline_efficiency      # regression includes eta (Sec. 6.1)
+    for k in range(len(t)):
+        est2.step(t[k], v[k], a[k], slope[k], engine_load=load[k], engine_speed=omega[k])
+    assert abs(est2.mass - 1700.0) / 1700.0 < 0.01
+
+
+def test_gating_rejects_braking_negative_accel_nan_and_missing_force():
+    est = LongitudinalMassEstimator(AUDI)
+    omega = AUDI.effective_gearing(3) * 15.0
+    kw = dict(engine_torque=150.0, engine_speed=omega)
+    assert est.step(0.0, 15.0, 0.5, 0.0, **kw)                       # accepted
+    assert not est.step(1.0, 15.0, 0.5, 0.0, brake_torque=500.0, **kw)
+    assert not est.step(2.0, 15.0, -0.5, 0.0, **kw)
+    assert not est.step(3.0, 15.0, 0.0, 0.0, **kw)                   # a > 0 strictly
+    assert not est.step(4.0, math.nan, 0.5, 0.0, **kw)
+    assert not est.step(5.0, 15.0, 0.5, math.nan, **kw)
+    assert not est.step(6.0, 15.0, 0.5, 0.0)                          # no propulsion source
+    assert not est.step(7.0, 0.5, 0.5, 0.0, **kw)                     # too slow
+    assert not est.step(8.0, 15.0, 0.5, 0.3, **kw)                    # too steep
+    assert not est.step(9.0, 15.0, 0.5, 0.0, engine_torque=150.0, engine_speed=60.0)  # slip
+    assert not est.step(10.0, 15.0, 0.5, 0.0, engine_torque=-20.0, engine_speed=omega)
+    assert est.rejected == {"nan": 2, "speed": 1, "accel": 2, "slope": 1, "braking": 1,
+                            "gear": 1, "gear_shift": 0, "no_force": 1, "propulsion": 1, "phi": 0}
+    assert est.samples_used == 1
+    # gear change from 3 to 4 starts the hold-off
+    omega4 = AUDI.effective_gearing(4) * 15.0
+    assert not est.step(11.0, 15.0, 0.5, 0.0, engine_torque=150.0, engine_speed=omega4)
+    assert est.rejected["gear_shift"] == 1
+    assert est.step(11.6, 15.0, 0.5, 0.0, engine_torque=150.0, engine_speed=omega4)
+
+
+def test_mass_output_clipped_state_not_and_state_dict_roundtrip():
+    est = LongitudinalMassEstimator(AUDI, MassRLSConfig(min_mass=1200.0, max_mass=3000.0))
+    assert est.mass == 1200.0 and est.raw_mass == 1000.0
+    est.rls.update(1.0, 1500.0)
+    state = est.state_dict()
+    assert all(isinstance(v, float) for v in state.values())
+    other = LongitudinalMassEstimator(AUDI)
+    other.load_state_dict(state)
+    assert other.raw_mass == pytest.approx(est.raw_mass) and other.gain == pytest.approx(est.gain)
+    other.reset(mass=2000.0, gain=5.0)
+    assert other.raw_mass == 2000.0 and other.gain == 5.0 and other.samples_used == 0
+    with pytest.raises(ValueError):
+        other.load_state_dict({"mass": 1.0})
+
+
+@pytest.mark.parametrize("field, value", [
+    ("forgetting_factor", 0.0), ("forgetting_factor", 1.5), ("initial_mass", -1.0),
+    ("initial_gain", 0.0), ("min_speed", -1.0), ("max_brake_torque", -1.0),
+    ("gear_shift_holdoff_s", math.nan), ("convergence_window", 1), ("drive_force_kind", "x"),
+    ("torque_regression", [1.0]), ("max_abs_slope", 2.0),
+])
+def test_config_validate_names_field(field, value):
+    cfg = MassRLSConfig(**{field: value})
+    with pytest.raises(ValueError, match=field):
+        cfg.validate()
+    with pytest.raises(ValueError, match=field):
+        LongitudinalMassEstimator(AUDI, cfg)
+
+
+def test_config_from_mapping():
+    cfg = MassRLSConfig.from_mapping({"forgetting_factor": 0.999, "torque_regression": [1, 2, 3]})
+    assert cfg.forgetting_factor == 0.999 and cfg.torque_regression == [1.0, 2.0, 3.0]
+    with pytest.raises(ValueError, match="bogus"):
+        MassRLSConfig.from_mapping({"bogus": 1})

@@ -1,0 +1,172 @@
+"""Report on a tiny MCAP bag written with rosbags."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from vehicle_estimation.tools import report  # noqa: E402
+
+TS = get_typestore(Stores.ROS2_JAZZY)
+Float64 = TS.types["std_msgs/msg/Float64"]
+Header = TS.types["std_msgs/msg/Header"]
+Time = TS.types["builtin_interfaces/msg/Time"]
+Vector3 = TS.types["geometry_msgs/msg/Vector3"]
+Twist = TS.types["geometry_msgs/msg/Twist"]
+TwistWithCovariance = TS.types["geometry_msgs/msg/TwistWithCovariance"]
+TwistWithCovarianceStamped = TS.types["geometry_msgs/msg/TwistWithCovarianceStamped"]
+Odometry = TS.types["nav_msgs/msg/Odometry"]
+Pose = TS.types["geometry_msgs/msg/Pose"]
+PoseWithCovariance = TS.types["geometry_msgs/msg/PoseWithCovariance"]
+Point = TS.types["geometry_msgs/msg/Point"]
+Quaternion = TS.types["geometry_msgs/msg/Quaternion"]
+
+T0 = 1_000_000_000_000  # 1000 s, in ns
+N = 100                 # 10 Hz, 10 s
+
+
+def _header(ns):
+    return Header(stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id="base_link")
+
+
+def _twist(ns, vx, vy, wz):
+    return TwistWithCovarianceStamped(
+        header=_header(ns),
+        twist=TwistWithCovariance(twist=Twist(linear=Vector3(x=vx, y=vy, z=0.0),
+                                              angular=Vector3(x=0.0, y=0.0, z=wz)),
+                                  covariance=np.zeros(36)))
+
+
+def _odom(ns, x, y, vx, vy):
+    return Odometry(
+        header=_header(ns), child_frame_id="base_link",
+        pose=PoseWithCovariance(pose=Pose(position=Point(x=x, y=y, z=0.0),
+                                          orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+                                covariance=np.zeros(36)),
+        twist=TwistWithCovariance(twist=Twist(linear=Vector3(x=vx, y=vy, z=0.0),
+                                              angular=Vector3(x=0.0, y=0.0, z=0.0)),
+                                  covariance=np.zeros(36)))
+
+
+@pytest.fixture()
+def bag(tmp_path):
+    path = tmp_path / "drive"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {}
+        for topic, msgtype in [
+            ("/estimation/mass", "std_msgs/msg/Float64"), ("/ground_truth/mass", "std_msgs/msg/Float64"),
+            ("/estimation/road_slope", "std_msgs/msg/Float64"), ("/ground_truth/road_slope", "std_msgs/msg/Float64"),
+            ("/estimation/sideslip", "std_msgs/msg/Float64"), ("/ground_truth/sideslip", "std_msgs/msg/Float64"),
+            ("/estimation/vehicle_state", "geometry_msgs/msg/TwistWithCovarianceStamped"),
+            ("/ground_truth/vehicle_state", "geometry_msgs/msg/TwistWithCovarianceStamped"),
+            ("/estimation/odometry", "nav_msgs/msg/Odometry"), ("/ground_truth/odometry", "nav_msgs/msg/Odometry"),
+        ]:
+            conns[topic] = (writer.add_connection(topic, msgtype, typestore=TS), msgtype)
+
+        def write(topic, ns, msg):
+            conn, msgtype = conns[topic]
+            writer.write(conn, ns, bytes(TS.serialize_cdr(msg, msgtype)))
+
+        write("/ground_truth/mass", T0, Float64(data=1600.0))          # latched once
+        for k in range(N):
+            ns = T0 + k * 100_000_000
+            t = k * 0.1
+            write("/estimation/mass", ns, Float64(data=1600.0 * (1.10 if k < 50 else 1.01)))
+            write("/ground_truth/road_slope", ns, Float64(data=0.05))
+            write("/estimation/road_slope", ns, Float64(data=0.05 + (0.01 if k % 2 else -0.01)))
+            write("/ground_truth/sideslip", ns, Float64(data=0.02 * math.sin(0.8 * t)))
+            write("/estimation/sideslip", ns, Float64(data=0.02 * math.sin(0.8 * (t - 0.3))))
+            # header stamps differ from log times (log 50 ms later): the header is used
+            write("/ground_truth/vehicle_state", ns + 50_000_000, _twist(ns, 10.0, 0.2, 0.1))
+            write("/estimation/vehicle_state", ns + 50_000_000, _twist(ns, 10.5, 0.2, 0.1))
+            write("/ground_truth/odometry", ns, _odom(ns, 10.0 * t, 0.0, 10.0, 0.0))
+            write("/estimation/odometry", ns, _odom(ns, 10.0 * t, 3.0, 6.0, 8.0))
+    return path
+
+
+def test_report_numbers_and_figures(bag, tmp_path):
+    out = tmp_path / "out"
+    res = report.make_report(bag, out, warmup_s=0.0, print_table=False)
+    on_disk = json.loads((out / "report.json").read_text())
+    assert on_disk == res
+    g = res["groups"]
+
+    mass = g["mass"]
+    assert mass["n"] == N
+    assert mass["mape_percent"] == pytest.approx(5.5)            # half 10 %, half 1 %
+    assert mass["mae"] == pytest.approx(88.0)
+    assert mass["rmse"] == pytest.approx(math.sqrt((160.0 ** 2 + 16.0 ** 2) / 2))
+    assert mass["last_half_max_abs_percent_error"] == pytest.approx(1.0)
+    assert mass["share_within_3_percent"] == pytest.approx(0.5)
+    assert mass["share_within_5_percent"] == pytest.approx(0.5)
+    # cv window = 5 s / 0.1 s = 50 samples. Error < 2 % from k = 50; c_v of the window
+    # ending at k holds j = 98 - k samples at 1.10 and 50 - j at 1.01:
+    # c_v = 0.09 sqrt(p (1 - p)) / (1.01 + 0.09 p), p = j / 50: j = 3 -> 0.0210, j = 2 -> 0.0174
+    # so the first converged sample is k = 97 and CR = 98 steps (9.7 s).
+    assert mass["cv_window_samples"] == 50
+    assert mass["convergence_rate_steps"] == 98
+    assert mass["convergence_time_s"] == pytest.approx(9.7)
+
+    slope = g["slope"]
+    assert slope["mae"] == pytest.approx(0.01)
+    assert slope["rmse"] == pytest.approx(0.01)
+    assert slope["max_abs_error"] == pytest.approx(0.01)
+    assert slope["mae_deg"] == pytest.approx(math.degrees(0.01))
+    assert slope["lag_s"] is None                 # constant truth: lag not observable
+
+    vs = g["vehicle_state"]
+    assert vs["vx"]["mae"] == pytest.approx(0.5)
+    assert vs["vx"]["n"] == N                       # header stamps align exactly
+    assert vs["vy"]["rmse"] == pytest.approx(0.0)
+    assert vs["yaw_rate"]["rmse"] == pytest.approx(0.0)
+    assert vs["sideslip"]["n"] == N
+    assert vs["sideslip"]["lag_s"] == pytest.approx(0.3, abs=0.02)
+
+    fu = g["fusion"]
+    assert fu["speed"]["rmse"] == pytest.approx(0.0)          # |(6, 8)| = 10
+    assert fu["position"]["horizontal_rmse"] == pytest.approx(3.0)
+
+    assert sorted(res["figures"]) == ["fusion.png", "mass.png", "slope.png", "vehicle_state.png"]
+    for name in res["figures"]:
+        assert (out / name).stat().st_size > 1000
+
+    # deterministic: a second run gives the same JSON
+    res2 = report.make_report(bag, tmp_path / "out2", warmup_s=0.0, print_table=False)
+    assert res2 == res
+    assert (tmp_path / "out2" / "report.json").read_text() == (out / "report.json").read_text()
+
+
+def test_report_missing_topics_and_cli(tmp_path, capsys):
+    path = tmp_path / "empty"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/ground_truth/mass", "std_msgs/msg/Float64", typestore=TS)
+        writer.write(conn, T0, bytes(TS.serialize_cdr(Float64(data=1500.0), "std_msgs/msg/Float64")))
+    out = tmp_path / "rep"
+    assert report.main([str(path), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "no data" in text
+    res = json.loads((out / "report.json").read_text())
+    assert all(v == {"status": "no data"} for v in res["groups"].values())
+    assert res["figures"] == []
+    assert report.main([str(tmp_path / "nope")]) == 2
+
+
+def test_report_sqlite3_bag_with_namespace(tmp_path):
+    path = tmp_path / "ns_bag"
+    with Writer(path, version=8) as writer:            # default storage: sqlite3
+        est = writer.add_connection("/car1/estimation/mass", "std_msgs/msg/Float64", typestore=TS)
+        true = writer.add_connection("/car1/ground_truth/mass", "std_msgs/msg/Float64", typestore=TS)
+        writer.write(true, T0, bytes(TS.serialize_cdr(Float64(data=2000.0), "std_msgs/msg/Float64")))
+        for k in range(20):
+            writer.write(est, T0 + k * 500_000_000,
+                         bytes(TS.serialize_cdr(Float64(data=2100.0), "std_msgs/msg/Float64")))
+    res = report.make_report(path, tmp_path / "o", warmup_s=0.0, print_table=False)
+    assert res["groups"]["mass"]["mape_percent"] == pytest.approx(5.0)
+    assert res["groups"]["mass"]["convergence_rate_steps"] is None
+    assert res["groups"]["slope"] == {"status": "no data"}
+    assert res["figures"] == ["mass.png"]

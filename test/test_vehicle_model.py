@@ -1,0 +1,136 @@
+"""Tests of the paper-004 vehicle model (vehicle_estimation.core.vehicle_model, Eqs. 1-9)."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vehicle_estimation.core.vehicle_model import (
+    VehicleInputs,
+    free_rolling_wheel_speeds,
+    measurement,
+    sideslip,
+    state_derivative,
+    transition,
+    tyre_forces,
+    _dugoff,
+)
+from vehicle_estimation.vehicle import load_vehicle_params
+
+PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
+SEDAN = load_vehicle_params(PARAMS_DIR / "sedan_d_class.yaml")
+DT = 0.01
+
+
+def _simulate(params, v0, delta, seconds, front_slip=0.0, slope=0.0):
+    x = np.array([v0, 0.0, 0.0, 0.0, 0.0])
+    slip = np.array([front_slip, front_slip, 0.0, 0.0])
+    for _ in range(int(round(seconds / DT))):
+        u = VehicleInputs(delta, free_rolling_wheel_speeds(x, delta, params, slip), slope)
+        x = transition(x, u, params, DT)
+    return x
+
+
+def test_straight_line_steady_state():
+    x = _simulate(SEDAN, 20.0, 0.0, 5.0, front_slip=0.003)
+    assert abs(x[1]) < 1e-9 and abs(x[2]) < 1e-9 and abs(x[4]) < 1e-9
+    # driving slip accelerates: ax = sum(Fx)/m - drag/m > 0 with Fx ~ 2 C_s sigma
+    assert x[3] > 0.0 and x[0] > 20.0
+
+
+def test_straight_line_on_slope_gravity():
+    # free-rolling wheels on a 3 % uphill: ax (kinematic) ~ -g sin(theta) - drag/m
+    theta = math.atan(0.03)
+    x0 = np.array([20.0, 0, 0, 0, 0])
+    u = VehicleInputs(0.0, free_rolling_wheel_speeds(x0, 0.0, SEDAN), theta)
+    drag = 0.5 * SEDAN.drag_area * SEDAN.air_density * x0[0] ** 2 / SEDAN.mass
+    assert state_derivative(x0, u, SEDAN)[0] == pytest.approx(-SEDAN.gravity * math.sin(theta) - drag)
+    x = x0.copy()
+    x[3] = state_derivative(x0, u, SEDAN)[0]
+    # the accelerometer sees the specific force, i.e. ~ -drag/m only
+    z = measurement(x, u, SEDAN)
+    assert z[0] == pytest.approx(-drag, abs=2e-3)
+
+
+@pytest.mark.parametrize("vx", [10.0, 20.0, 30.0])
+def test_steady_cornering_matches_linear_bicycle(vx):
+    """r = vx delta / (L + K vx^2), K = m/L (l_R/C_F - l_F/C_R), C_F/R = 2 C_alpha per axle."""
+    p = SEDAN
+    delta = 0.01
+    L = p.wheelbase
+    K = p.mass / L * (p.lr / (2 * p.cornering_stiffness_front) - p.lf / (2 * p.cornering_stiffness_rear))
+    # small driving slip on the front wheels to roughly hold the speed against drag
+    x = _simulate(p, vx, delta, 8.0, front_slip=0.0015)
+    expected = x[0] * delta / (L + K * x[0] ** 2)
+    assert x[2] == pytest.approx(expected, rel=0.01)
+    assert x[4] == pytest.approx(x[0] * x[2], rel=0.02)      # ay = vx r in steady state
+
+
+def test_dugoff_saturates_at_mu_fz():
+    fz = np.full(4, 4000.0)
+    mu_fz = SEDAN.road_friction * fz
+    for s in (0.0, 0.01, 0.05, 0.2, 1.0, 5.0, 50.0):
+        for a in (0.0, 0.02, 0.1, 0.5, 1.2):
+            fx, fy = _dugoff(np.full(4, s), np.full(4, a), fz, SEDAN)
+            res = np.hypot(fx, fy)
+            assert np.all(res <= mu_fz * (1 + 1e-12))
+    # pure driving slip: lambda -> mu Fz / (2 C_s), |F| -> (1 - mu Fz / (4 C_s)) mu Fz (~0.99 mu Fz)
+    fx, fy = _dugoff(np.full(4, 1e6), np.zeros(4), fz, SEDAN)
+    limit = (1 - mu_fz / (4 * SEDAN.longitudinal_stiffness)) * mu_fz
+    assert np.allclose(fx, limit, rtol=1e-5)
+    fx, fy = _dugoff(np.zeros(4), np.full(4, 1.565), fz, SEDAN)
+    assert np.allclose(np.hypot(fx, fy), mu_fz, rtol=1e-3)
+    # locked wheel (1 + sigma = 0): finite, braking force mu Fz
+    fx, fy = _dugoff(np.full(4, -1.0), np.zeros(4), fz, SEDAN)
+    assert np.all(np.isfinite(fx)) and np.allclose(fx, -mu_fz, rtol=1e-6)
+    # linear region: F = C sigma / (1 + sigma)
+    fx, _ = _dugoff(np.full(4, 0.001), np.zeros(4), fz, SEDAN)
+    assert np.allclose(fx, SEDAN.longitudinal_stiffness * 0.001 / 1.001)
+
+
+def test_vertical_loads_sum_and_transfer():
+    x = np.array([20.0, 0.0, 0.0, 2.0, 3.0])
+    u = VehicleInputs(0.0, free_rolling_wheel_speeds(x, 0.0, SEDAN), 0.0)
+    tf = tyre_forces(x, u, SEDAN)
+    assert tf.fz.sum() == pytest.approx(SEDAN.mass * SEDAN.gravity)
+    assert tf.fz[0] < tf.fz[1] and tf.fz[2] < tf.fz[3]          # ay > 0 (left turn): right wheels loaded
+    assert tf.fz[:2].sum() < SEDAN.mass * SEDAN.gravity * SEDAN.lr / SEDAN.wheelbase  # ax > 0: rear loaded
+
+
+def test_vectorised_transition_matches_per_point():
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(10, 5)) * [2.0, 0.5, 0.1, 1.0, 1.0] + [20.0, 0, 0, 0, 0]
+    x0 = np.array([20.0, 0.1, 0.05, 0.3, 1.0])
+    for u in (VehicleInputs(0.03, free_rolling_wheel_speeds(x0, 0.03, SEDAN, 0.01), 0.03, 1400.0),
+              VehicleInputs(0.03, [np.nan] * 4, 0.03),
+              VehicleInputs(0.03, [np.nan] * 4, 0.0, drive_torque=800.0, brake_torques=[0, 0, 100, 100])):
+        for dt in (0.005, 0.01, 0.025):
+            batch = transition(X, u, SEDAN, dt)
+            single = np.array([transition(x, u, SEDAN, dt) for x in X])
+            assert np.allclose(batch, single, rtol=0, atol=1e-12)
+            assert np.allclose(state_derivative(X, u, SEDAN),
+                               np.array([state_derivative(x, u, SEDAN) for x in X]), atol=1e-9)
+        assert np.allclose(measurement(X, u, SEDAN), np.array([measurement(x, u, SEDAN) for x in X]))
+
+
+def test_fallback_without_wheel_speeds_uses_state_ax():
+    x = np.array([20.0, 0.0, 0.0, 1.5, 0.0])
+    u = VehicleInputs(0.0, [np.nan] * 4, 0.0)
+    xn = transition(x, u, SEDAN, 0.1)
+    assert xn[3] == pytest.approx(1.5)                          # random walk
+    assert xn[0] == pytest.approx(20.0 + 0.1 * 1.5)
+    d = state_derivative(x, u, SEDAN)
+    assert d[0] == pytest.approx(1.5) and d[3] == 0.0
+
+
+def test_standstill_is_finite():
+    x = np.zeros(5)
+    u = VehicleInputs(0.2, np.zeros(4), 0.05)
+    xn = transition(x, u, SEDAN, DT)
+    assert np.all(np.isfinite(xn))
+    assert sideslip(x) == 0.0
+
+
+def test_sideslip_eq14():
+    assert sideslip(np.array([20.0, 0.5, 0, 0, 0])) == pytest.approx(math.atan(0.5 / 20.0))

@@ -1,0 +1,165 @@
+"""``vehicle-estimation``: the launcher (a plain Python script, not ``ros2 launch``).
+
+Subcommands::
+
+    vehicle-estimation demo [--out DIR]                 simulate a drive, replay it, report
+    vehicle-estimation simulate --scenario NAME --out BAG
+    vehicle-estimation run [--vehicle FILE] [--params FILE] [--namespace NS]
+    vehicle-estimation replay BAG --record OUT [--vehicle FILE] [--params FILE]
+    vehicle-estimation report BAG [--out DIR]
+
+``run`` and ``replay`` start every node as its own OS process. Ctrl-C or SIGTERM stops them
+all; the children also die with the launcher if it is killed (no orphans).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+
+from vehicle_estimation.paths import params_file
+
+
+def _node_group(args: argparse.Namespace, overrides=None, log_dir: Path | None = None):
+    from vehicle_estimation.tools.processes import NodeGroup
+    files = [params_file(args.vehicle), params_file(args.params)]
+    return NodeGroup(files, namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir)
+
+
+def _add_node_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--vehicle", default="sedan_d_class",
+                   help="vehicle params file or name in params/ (default: sedan_d_class)")
+    p.add_argument("--params", default="estimation",
+                   help="node params file or name in params/ (default: estimation)")
+    p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    group = _node_group(args)
+    stopping = {"flag": False}
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        stopping["flag"] = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    group.start()
+    names = ", ".join(n.spec.name for n in group.nodes)
+    print(f"started {names} in namespace {args.namespace}; Ctrl-C stops them", file=sys.stderr)
+    try:
+        while not stopping["flag"]:
+            for node in group.check():
+                code = node.process.returncode
+                if code == 2:  # bad parameters: respawning would only repeat the error
+                    print(f"{node.spec.name} refused its parameters (exit 2); stopping", file=sys.stderr)
+                    stopping["flag"] = True
+                    break
+                node.restarts += 1
+                print(f"{node.spec.name} exited with {code}; respawning (restart {node.restarts})",
+                      file=sys.stderr)
+                node.start(dict(__import__("os").environ))
+            time.sleep(0.2)
+    finally:
+        group.stop()
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools.replay import ReplayError, print_stats, replay
+    record = Path(args.record) if args.record else None
+    log_dir = Path(args.log_dir) if args.log_dir else None
+    if log_dir:
+        log_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        stats = replay(Path(args.bag), record, lambda ov: _node_group(args, ov, log_dir),
+                       namespace=args.namespace, tick_s=args.tick, progress=not args.quiet)
+    except ReplayError as exc:
+        print(f"replay failed: {exc}", file=sys.stderr)
+        return 1
+    print_stats(stats)
+    return 0 if stats.lossless else 1
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools import report
+    argv = [args.bag] + (["--out", args.out] if args.out else [])
+    return report.main(argv)
+
+
+def cmd_simulate(args: argparse.Namespace, rest: list[str]) -> int:
+    from vehicle_estimation.sim import cli as sim_cli
+    return sim_cli.main(rest)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from vehicle_estimation.sim import default_scenario, scenario_by_name, simulate, write_bag
+    from vehicle_estimation.tools import report
+    from vehicle_estimation.tools.replay import ReplayError, print_stats, replay
+
+    out = Path(args.out)
+    drive, estimates, report_dir = out / "drive", out / "estimates", out / "report"
+    for path in (drive, estimates, report_dir):
+        if path.exists():
+            shutil.rmtree(path)
+    out.mkdir(parents=True, exist_ok=True)
+    scenario = scenario_by_name(args.scenario) if args.scenario else default_scenario()
+    print(f"[1/3] simulating '{args.scenario or 'default'}' ({scenario.duration_s:.0f} s) -> {drive}")
+    t0 = time.process_time()
+    write_bag(simulate(scenario), drive)
+    print(f"      {time.process_time() - t0:.1f} CPU s")
+    print(f"[2/3] replaying through fusion, road_slope, vehicle_state, mass -> {estimates}")
+    try:
+        stats = replay(drive, estimates, lambda ov: _node_group(args, ov, out / "logs"),
+                       namespace=args.namespace, progress=True)
+    except ReplayError as exc:
+        print(f"replay failed: {exc}; node logs in {out / 'logs'}", file=sys.stderr)
+        return 1
+    print_stats(stats)
+    print(f"[3/3] report -> {report_dir}")
+    code = report.main([str(estimates), "--out", str(report_dir)])
+    return code if stats.lossless else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vehicle-estimation", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo", help="simulate a drive, replay it through all nodes, report")
+    p.add_argument("--out", default="out/demo", help="output directory (default: out/demo)")
+    p.add_argument("--scenario", default=None, help="simulator scenario (default: the default drive)")
+    _add_node_options(p)
+
+    sub.add_parser("simulate", help="simulate a drive into a bag (see: simulate --help)", add_help=False)
+
+    p = sub.add_parser("run", help="start every node (live)")
+    _add_node_options(p)
+
+    p = sub.add_parser("replay", help="play a bag through every node and record the estimates")
+    p.add_argument("bag")
+    p.add_argument("--record", required=True, help="output bag directory (MCAP)")
+    p.add_argument("--tick", type=float, default=0.1, help="replay tick of bag time [s]")
+    p.add_argument("--log-dir", default=None, help="write each node's log here")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_node_options(p)
+
+    p = sub.add_parser("report", help="metrics and plots of estimates against ground truth")
+    p.add_argument("bag")
+    p.add_argument("--out", default=None)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "simulate":
+        return cmd_simulate(argparse.Namespace(), argv[1:])
+    args = build_parser().parse_args(argv)
+    return {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report}[args.command](args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,777 @@
+"""IMU / GNSS / CAN-speed / vehicle-model fusion: error-state EKF (pure numpy, no ROS).
+
+Implements paper 003 (Jensen, Nielsen, Pedersen, Hansen, Stoustrup 2022, "Online
+estimation of vehicle mass ...", MSSP 171, 108925), Sec. 5 and Alg. 1:
+
+* Sec. 5.2 INS mechanisation: bias calibration Eq. (22), quaternion attitude
+  propagation Eqs. (23)-(24), specific force to navigation frame Eqs. (25)-(26),
+  gravity compensation Eq. (27), position/velocity integration Eqs. (28)-(29).
+* Sec. 5.3 error-state EKF: 15-state error vector [dp, dv, eps, dba, dbg], Eq. (30)-(32),
+  small-angle attitude error R_true = (I - S(eps)) R_hat, Eq. (31); discrete error
+  dynamics F, G, Eq. (33)-(34); covariance propagation Eq. (35)-(36); gain Eq. (37);
+  error injection and reset Eqs. (40)-(43); covariance update Eq. (44) (here in
+  Joseph form, which is algebraically identical for the optimal gain).
+* Sec. 5.4 measurements, Eqs. (45)-(47): GNSS position (navigation frame), CAN-bus
+  longitudinal speed (body x), non-holonomic (NH) pseudo-measurements of zero lateral
+  and vertical body speed applied at every IMU sample, and stationary updates (NH
+  variances greatly reduced when CAN speed says the vehicle stands still).
+* Sec. 7.1 initialisation: roll/pitch from the averaged accelerometer at standstill,
+  gyro bias = mean of ``init_stationary_samples`` (200) stationary gyro samples,
+  accelerometer bias zero, yaw from GNSS motion once the vehicle moves.
+
+Frames and conventions (REP-103): body = FLU (x forward, y left, z up); world = ENU.
+The paper's NED equations are frame-agnostic except for the gravity vector, so the
+filter runs directly in ENU with gravity (0, 0, -g).  Quaternions are (x, y, z, w),
+body -> ENU.  The IMU specific force reads +g on body z when level at rest.
+
+Biases are reported in the conventional sense: ``measured = true + bias + noise``;
+the paper's delta-u (Eq. (21)-(22)) is the negative of this.
+
+Stationary detection: CAN speed (``update_speed``) with ``|speed| <=
+stationary_speed_threshold`` means stationary (as in the paper), unless the caller
+overrides with ``set_stationary_hint(True/False)``; ``set_stationary_hint(None)``
+returns to speed-based detection.  If neither is available, alignment falls back on
+an IMU-variance test only.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from .rotations import (euler_from_rotmat, quat_from_euler, quat_multiply, quat_normalize,
+                        quat_to_rotmat, rot_z, skew)
+
+# Error-state layout, Eq. (32): z = [dp, dv, eps, dba, dbg]
+IP, IV, IA, IBA, IBG = 0, 3, 6, 9, 12
+N_ERR = 15
+
+STATUS_WAIT_STANDSTILL = "waiting_for_standstill"
+STATUS_ALIGNING = "aligning"
+STATUS_WAIT_HEADING = "waiting_for_heading"
+STATUS_RUNNING = "running"
+
+
+def _vec3(x) -> np.ndarray | None:
+    try:
+        a = np.asarray(x, dtype=float).reshape(3)
+    except (TypeError, ValueError):
+        return None
+    if not math.isfinite(a[0] + a[1] + a[2]):      # NaN/inf propagate through the sum
+        return None
+    return a
+
+
+def _inv_small(S: np.ndarray) -> np.ndarray | None:
+    """Inverse of a small SPD innovation covariance (closed form for 1x1 / 2x2)."""
+    m = S.shape[0]
+    if m == 1:
+        s = S[0, 0]
+        return np.array([[1.0 / s]]) if s > 0.0 and math.isfinite(s) else None
+    if m == 2:
+        a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
+        det = a * d - b * c
+        if not (det > 0.0 and math.isfinite(det)):
+            return None
+        return np.array([[d, -b], [-c, a]]) / det
+    try:
+        inv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None
+    return inv if math.isfinite(float(inv.sum())) else None
+
+
+@dataclass
+class FusionConfig:
+    """Filter tuning.  Defaults are paper 003 Tables 2-3 (SI units) where the paper
+    gives a value; the remaining fields are implementation choices documented here.
+
+    The paper's process noise is in discrete "per IMU sample" form, Eq. (34): velocity
+    and attitude noise enter as ``Ts * R * w`` (variance ``Ts^2 sigma^2`` per step) and
+    the bias random walks as ``I * w`` (variance ``sigma^2`` per step).  The bias terms
+    are scaled by ``dt * imu_rate_hz`` so that they equal the paper at the nominal rate
+    and stay consistent under timing jitter.
+    """
+    gravity: float = 9.80665                 # [m/s^2] (paper uses 9.81, Eq. (27))
+    imu_rate_hz: float = 200.0               # nominal rate the per-sample Q values refer to
+    # --- Table 2: initial state standard deviations (P0) ---
+    p0_position_sigma: float = 2.0           # [m]
+    p0_velocity_sigma: float = 0.5           # [m/s]
+    p0_attitude_sigma: tuple = (5e-3, 5e-3, 10e-3)  # [rad] about world x, y, z
+    p0_accel_bias_sigma: float = 0.005       # [m/s^2]
+    p0_gyro_bias_sigma: float = 0.0008       # [rad/s]
+    # --- Table 3 (left): process noise Q ---
+    q_accel_sigma: float = 0.03              # [m/s^2]
+    q_gyro_sigma: float = 1e-5               # [rad/s]
+    q_accel_bias_sigma: float = 1e-3         # [m/s^2] per sample
+    q_gyro_bias_sigma: float = 1e-6          # [rad/s] per sample
+    # --- Table 3 (right): measurement noise W ---
+    gnss_sigma: tuple = (2.0, 2.0, 5.0)      # [m] E, N, U (used when no covariance given)
+    speed_sigma: float = 0.5                 # [m/s]
+    nh_sigma_y: float = 5.0                  # [m/s] lateral NH constraint
+    nh_sigma_z: float = 15.0                 # [m/s] vertical NH constraint
+    # --- stationary updates (paper: "greatly reduced" NH variances; value not given) ---
+    stationary_sigma: float = 0.02           # [m/s] NH sigma while stationary
+    stationary_update_longitudinal: bool = True  # also pseudo-measure body-x speed 0 at standstill
+    stationary_speed_threshold: float = 0.05     # [m/s] |CAN speed| <= this -> stationary
+    # A CAN speed of 0 is only trusted while the IMU agrees (quantised / low-rate CAN
+    # reads 0 for a while after the car starts to roll): low-passed gravity-free
+    # acceleration and angular rate below these limits (not in the paper).
+    stationary_max_accel: float = 0.3            # [m/s^2]
+    stationary_max_rate: float = 0.05            # [rad/s]
+    stationary_imu_tau_s: float = 0.1            # low-pass time constant
+    speed_timeout_s: float = 0.5             # CAN speed older than this -> stationarity unknown
+    speed_unsigned: bool = False             # CAN speed is |v_x| (sign taken from the estimate)
+    # --- non-holonomic update cadence (None: every IMU sample, as in the paper) ---
+    nh_update_rate_hz: float | None = None
+    full_velocity_jacobian: bool = True      # include the attitude term -R^T S(v) in body-speed H
+    # --- initialisation (Sec. 7.1) ---
+    init_stationary_samples: int = 200
+    init_max_accel_std: float = 0.3          # [m/s^2] per-axis std over the alignment window
+    init_max_gyro_std: float = 0.02          # [rad/s]
+    heading_min_baseline_m: float = 15.0     # GNSS travel before yaw is fixed
+    heading_max_fixes: int = 600
+    # --- robustness ---
+    gnss_gate_chi2: float | None = 16.27     # chi2(3) 99.9 %; None disables
+    speed_gate_chi2: float | None = 10.83    # chi2(1) 99.9 %; None disables
+    max_consecutive_rejections: int = 10     # then the position covariance is re-opened
+    max_measurement_delay_s: float = 0.5     # measurements older than the filter by more: rejected
+    max_imu_dt_s: float = 0.5                # larger IMU gaps are propagated but counted
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad field."""
+        pos = ["gravity", "imu_rate_hz", "p0_position_sigma", "p0_velocity_sigma",
+               "p0_accel_bias_sigma", "p0_gyro_bias_sigma", "q_accel_sigma", "q_gyro_sigma",
+               "q_accel_bias_sigma", "q_gyro_bias_sigma", "speed_sigma", "nh_sigma_y",
+               "nh_sigma_z", "stationary_sigma", "speed_timeout_s", "init_max_accel_std",
+               "init_max_gyro_std", "heading_min_baseline_m", "stationary_max_accel",
+               "stationary_max_rate", "stationary_imu_tau_s", "max_measurement_delay_s",
+               "max_imu_dt_s"]
+        for name in pos:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"FusionConfig.{name} must be a finite positive number, got {v!r}")
+        v = self.stationary_speed_threshold
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"FusionConfig.stationary_speed_threshold must be >= 0, got {v!r}")
+        for name in ("p0_attitude_sigma", "gnss_sigma"):
+            v = getattr(self, name)
+            try:
+                a = np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                raise ValueError(f"FusionConfig.{name} must be 3 positive numbers, got {v!r}") from None
+            if a.shape != (3,) or not np.all(np.isfinite(a)) or np.any(a <= 0):
+                raise ValueError(f"FusionConfig.{name} must be 3 positive numbers, got {v!r}")
+        for name in ("gnss_gate_chi2", "speed_gate_chi2", "nh_update_rate_hz"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
+                                  or not math.isfinite(v) or v <= 0):
+                raise ValueError(f"FusionConfig.{name} must be None or a positive number, got {v!r}")
+        for name in ("init_stationary_samples", "heading_max_fixes", "max_consecutive_rejections"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"FusionConfig.{name} must be an int >= 1, got {v!r}")
+        if self.heading_max_fixes < 2:
+            raise ValueError("FusionConfig.heading_max_fixes must be >= 2")
+        for name in ("stationary_update_longitudinal", "speed_unsigned", "full_velocity_jacobian"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"FusionConfig.{name} must be a bool")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FusionConfig":
+        """Build from a (ROS parameter) dict; unknown keys raise ValueError."""
+        names = {f.name for f in fields(cls)}
+        bad = set(d) - names
+        if bad:
+            raise ValueError(f"unknown FusionConfig field(s): {sorted(bad)}")
+        cfg = cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+        cfg.validate()
+        return cfg
+
+
+class FusionEKF:
+    """Error-state EKF of paper 003 Alg. 1 with the API in REP-103 terms.
+
+    Call order: ``process_imu`` for every IMU sample, ``update_gnss`` /
+    ``update_speed`` whenever a message arrives (stamps in float seconds from the
+    message headers).  Measurements are applied to the state at the latest IMU
+    stamp; the GNSS prediction is extrapolated by ``v * (t_meas - t_imu)``.
+    """
+
+    def __init__(self, config: FusionConfig | None = None):
+        self.config = config if config is not None else FusionConfig()
+        self.config.validate()
+        c = self.config
+        self._p0_diag = np.concatenate([
+            np.full(3, c.p0_position_sigma ** 2), np.full(3, c.p0_velocity_sigma ** 2),
+            np.asarray(c.p0_attitude_sigma, float) ** 2,
+            np.full(3, c.p0_accel_bias_sigma ** 2), np.full(3, c.p0_gyro_bias_sigma ** 2)])
+        self._w_gnss = np.diag(np.asarray(c.gnss_sigma, float) ** 2)
+        self._g_vec = np.array([0.0, 0.0, -c.gravity])
+        self._eye15 = np.eye(N_ERR)
+        self._eye3 = np.eye(3)
+        self._di = np.arange(N_ERR)
+        self._qd_dt = None
+        self._qd = np.zeros(N_ERR)
+        self.reset()
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset(self) -> None:
+        """Forget everything; back to 'waiting_for_standstill'."""
+        self.status = STATUS_WAIT_STANDSTILL
+        self._p = np.zeros(3)
+        self._v = np.zeros(3)
+        self._q = np.array([0.0, 0.0, 0.0, 1.0])
+        self._R = np.eye(3)
+        self._ba = np.zeros(3)
+        self._bg = np.zeros(3)
+        self._P = np.diag(self._p0_diag)
+        self._F = np.eye(N_ERR)
+        self._t = None                # last IMU stamp
+        self._f_prev = None           # last raw IMU sample (used over the next interval, Eq. (28))
+        self._w_prev = None
+        self._t_gnss = None
+        self._t_speed = None
+        self._last_speed = None
+        self._last_gnss = None
+        self._t_nh = -math.inf
+        self._a_lp = np.zeros(3)      # low-passed gravity-free acceleration (ENU)
+        self._w_lp = np.zeros(3)      # low-passed compensated angular rate (FLU)
+        self._hint = None
+        self._align_f: list = []
+        self._align_w: list = []
+        self._heading_fixes: list = []   # (gnss_enu, ins_enu, variance_h)
+        self._consec = {"gnss": 0, "speed": 0}
+        self.rejected = {"imu_nonfinite": 0, "imu_out_of_order": 0,
+                         "gnss_nonfinite": 0, "gnss_out_of_order": 0, "gnss_stale": 0, "gnss_gate": 0,
+                         "speed_nonfinite": 0, "speed_out_of_order": 0, "speed_stale": 0, "speed_gate": 0,
+                         "update_numerical": 0}
+        self.events = {"imu_gap": 0, "align_restart": 0, "gnss_covariance_reopened": 0,
+                       "speed_covariance_reopened": 0, "heading_initialised": 0}
+        self.heading_sigma_at_init = None
+
+    @property
+    def initialized(self) -> bool:
+        return self.status == STATUS_RUNNING
+
+    @property
+    def time(self) -> float | None:
+        """Stamp of the last processed IMU sample."""
+        return self._t
+
+    def set_stationary_hint(self, stationary: bool | None) -> None:
+        """Override stationarity (True/False); None returns to CAN-speed detection."""
+        self._hint = None if stationary is None else bool(stationary)
+
+    def _stationary_source(self, t: float):
+        """True/False from the hint or a fresh CAN speed; None when unknown."""
+        if self._hint is not None:
+            return self._hint
+        if self._t_speed is not None and t - self._t_speed <= self.config.speed_timeout_s:
+            return abs(self._last_speed) <= self.config.stationary_speed_threshold
+        return None
+
+    def _imu_quiet(self) -> bool:
+        c = self.config
+        a, w = self._a_lp, self._w_lp
+        return (a[0] * a[0] + a[1] * a[1] + a[2] * a[2] <= c.stationary_max_accel ** 2
+                and w[0] * w[0] + w[1] * w[1] + w[2] * w[2] <= c.stationary_max_rate ** 2)
+
+    def _is_stationary(self, t: float) -> bool:
+        """Stationary-update condition: the hint if set, else CAN speed ~ 0 and a quiet IMU."""
+        if self._hint is not None:
+            return self._hint
+        return bool(self._stationary_source(t)) and self._imu_quiet()
+
+    @property
+    def stationary(self) -> bool:
+        """Whether the stationary (zero-velocity) update is currently applied."""
+        t = self._t if self._t is not None else (self._t_speed if self._t_speed is not None else 0.0)
+        if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
+            return bool(self._stationary_source(t))
+        return self._is_stationary(t)
+
+    # ------------------------------------------------------------------ IMU
+    def process_imu(self, t: float, specific_force, angular_rate) -> bool:
+        """One IMU sample (body FLU, specific force [m/s^2], angular rate [rad/s]).
+
+        Before alignment the sample is collected for initialisation (Sec. 7.1).  Then
+        Alg. 1: the previous sample, bias-calibrated (Eq. (22)), propagates the nominal
+        state over [t_prev, t] (Eqs. (23)-(29)) and the error covariance (Eq. (35)); the
+        NH / stationary pseudo-measurements (Eqs. (45)-(47)) are then applied.
+        Returns False (and changes nothing) for non-finite input or t <= last stamp.
+        """
+        f = _vec3(specific_force)
+        w = _vec3(angular_rate)
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            t = math.nan
+        if f is None or w is None or not math.isfinite(t):
+            self.rejected["imu_nonfinite"] += 1
+            return False
+        if self._t is not None and not t > self._t:
+            self.rejected["imu_out_of_order"] += 1
+            return False
+
+        if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
+            self._align_step(t, f, w)
+        else:
+            dt = t - self._t
+            if dt > self.config.max_imu_dt_s:
+                self.events["imu_gap"] += 1
+            self._propagate(dt)
+            self._t = t
+            rate = self.config.nh_update_rate_hz
+            if rate is None or t - self._t_nh >= 1.0 / rate - 1e-9:
+                self._t_nh = t
+                self._nh_update(t)
+        self._t = t
+        self._f_prev = f
+        self._w_prev = w
+        return True
+
+    def _align_step(self, t: float, f: np.ndarray, w: np.ndarray) -> None:
+        c = self.config
+        static = self._stationary_source(t)
+        if static is False:
+            if self._align_f:
+                self.events["align_restart"] += 1
+            self._align_f.clear()
+            self._align_w.clear()
+            self.status = STATUS_WAIT_STANDSTILL
+            return
+        self._align_f.append(f)
+        self._align_w.append(w)
+        self.status = STATUS_ALIGNING
+        n = c.init_stationary_samples
+        if len(self._align_f) < n:
+            return
+        fa = np.array(self._align_f[-n:])
+        wa = np.array(self._align_w[-n:])
+        if fa.std(axis=0).max() > c.init_max_accel_std or wa.std(axis=0).max() > c.init_max_gyro_std:
+            # Not quiet enough (e.g. no speed source and the car moves): slide the window.
+            self.events["align_restart"] += 1
+            del self._align_f[: n // 2]
+            del self._align_w[: n // 2]
+            return
+        self._align(fa.mean(axis=0), wa.mean(axis=0))
+
+    def _align(self, f_mean: np.ndarray, w_mean: np.ndarray) -> None:
+        """Sec. 7.1: roll/pitch from gravity, gyro bias = mean rate, accel bias = 0."""
+        roll = math.atan2(f_mean[1], f_mean[2])
+        pitch = math.atan2(-f_mean[0], math.hypot(f_mean[1], f_mean[2]))
+        self._q = quat_from_euler(roll, pitch, 0.0)       # yaw provisional until GNSS heading
+        self._R = quat_to_rotmat(self._q)
+        self._bg = w_mean.copy()
+        self._ba = np.zeros(3)
+        self._v = np.zeros(3)
+        self._p = self._last_gnss.copy() if self._last_gnss is not None else np.zeros(3)
+        self._P = np.diag(self._p0_diag)
+        self._align_f.clear()
+        self._align_w.clear()
+        self._heading_fixes = []
+        self.status = STATUS_WAIT_HEADING
+
+    def _propagate(self, dt: float) -> None:
+        """INS mechanisation (Sec. 5.2) and covariance propagation (Eqs. (33)-(36))."""
+        c = self.config
+        R = self._R
+        s_b = self._f_prev - self._ba                     # Eq. (22)
+        w_b = self._w_prev - self._bg
+        s_n = R @ s_b                                     # Eq. (25)
+        a = s_n + self._g_vec                             # Eq. (27)
+        self._p += dt * self._v + (0.5 * dt * dt) * a     # Eq. (28)
+        self._v += dt * a                                 # Eq. (29)
+        alpha = min(1.0, dt / c.stationary_imu_tau_s)     # stationarity cross-check (not in paper)
+        self._a_lp += alpha * (a - self._a_lp)
+        self._w_lp += alpha * (w_b - self._w_lp)
+        # Eq. (23): q_k = q_{k-1} (x) [cos(|w|Ts/2), sin(|w|Ts/2) w/|w|]  (body-rate, right product)
+        wx, wy, wz = w_b[0] * dt, w_b[1] * dt, w_b[2] * dt
+        ang = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if ang > 1e-12:
+            k = math.sin(0.5 * ang) / ang
+            cw = math.cos(0.5 * ang)
+        else:
+            k, cw = 0.5, 1.0
+        bx, by, bz = k * wx, k * wy, k * wz
+        qx, qy, qz, qw = self._q
+        nx = qw * bx + qx * cw + qy * bz - qz * by
+        ny = qw * by - qx * bz + qy * cw + qz * bx
+        nz = qw * bz + qx * by - qy * bx + qz * cw
+        nw = qw * cw - qx * bx - qy * by - qz * bz
+        inv = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+        self._q = np.array([nx * inv, ny * inv, nz * inv, nw * inv])
+        self._R = quat_to_rotmat(self._q)                 # Eq. (26)
+
+        # Eq. (34): F = I + Ts*[..]; signs for conventional biases (measured = true + b):
+        #   d(dv)/dt = S(s_n) eps - R dba,  d(eps)/dt = R dbg
+        F = self._F
+        F[0, 3] = F[1, 4] = F[2, 5] = dt
+        F[3:6, 6:9] = dt * np.array([[0.0, -s_n[2], s_n[1]],
+                                     [s_n[2], 0.0, -s_n[0]],
+                                     [-s_n[1], s_n[0], 0.0]])
+        dR = dt * R
+        F[3:6, 9:12] = -dR
+        F[6:9, 12:15] = dR
+        P = F @ self._P @ F.T                             # Eq. (35)
+        # G Qc G^T (Eqs. (34), (36)): R diag(sigma^2) R^T = sigma^2 I for isotropic sigma,
+        # so the discrete process noise is diagonal; cached per dt.
+        if dt != self._qd_dt:
+            kb = dt * c.imu_rate_hz
+            self._qd = np.concatenate([
+                np.zeros(3), np.full(3, (dt * c.q_accel_sigma) ** 2),
+                np.full(3, (dt * c.q_gyro_sigma) ** 2),
+                np.full(3, kb * c.q_accel_bias_sigma ** 2), np.full(3, kb * c.q_gyro_bias_sigma ** 2)])
+            self._qd_dt = dt
+        P[self._di, self._di] += self._qd
+        self._P = P
+
+    # ------------------------------------------------------------------ measurement helpers
+    def _body_speed_rows(self, rows) -> tuple:
+        """Prediction v_b[rows] = (R^T v)[rows] and its Jacobian H (Eq. (46)).
+
+        With R_true = (I - S(eps)) R_hat:  v_b = R^T v - R^T S(v) eps  (the attitude
+        term is dropped when ``full_velocity_jacobian`` is False, as in Eq. (46)).
+        """
+        Rt = self._R.T
+        vb = Rt @ self._v
+        H = np.zeros((len(rows), N_ERR))
+        H[:, IV:IV + 3] = Rt[rows]
+        if self.config.full_velocity_jacobian:
+            H[:, IA:IA + 3] = -(Rt[rows] @ skew(self._v))
+        return vb[rows], H
+
+    def _nh_update(self, t: float) -> None:
+        """NH constraints / stationary update (Sec. 5.4, rows (3) of Eq. (45))."""
+        c = self.config
+        if self._is_stationary(t):
+            rows = [0, 1, 2] if c.stationary_update_longitudinal else [1, 2]
+            r = np.full(len(rows), c.stationary_sigma ** 2)
+        else:
+            rows = [1, 2]
+            r = np.array([c.nh_sigma_y ** 2, c.nh_sigma_z ** 2])
+        pred, H = self._body_speed_rows(rows)
+        self._update(-pred, H, np.diag(r), None)
+
+    def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
+        """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form).
+
+        Returns 1 if applied, 0 if gated out, -1 on numerical failure.
+        """
+        P = self._P
+        PHt = P @ H.T
+        S = H @ PHt + W
+        S_inv = _inv_small(S)
+        if S_inv is None:
+            self.rejected["update_numerical"] += 1
+            return -1
+        if gate is not None:
+            d2 = float(y @ S_inv @ y)
+            if not d2 <= gate:
+                return 0
+        K = PHt @ S_inv                                   # Eq. (37)
+        dz = K @ y                                        # Eq. (40), with the previous error reset to 0
+        if not math.isfinite(float(dz.sum())):
+            self.rejected["update_numerical"] += 1
+            return -1
+        A = self._eye15 - K @ H
+        P = A @ P @ A.T + K @ W @ K.T                     # Eq. (44), Joseph form
+        self._P = 0.5 * (P + P.T)
+        self._inject(dz)
+        return 1
+
+    def _inject(self, dz: np.ndarray) -> None:
+        """Eqs. (41)-(43): feed the error estimate back into the nominal state."""
+        self._p += dz[IP:IP + 3]                          # Eq. (41)
+        self._v += dz[IV:IV + 3]                          # Eq. (42)
+        e = dz[IA:IA + 3]
+        # Eq. (31): R_new = (I - S(eps)) R_hat, done exactly as q_new = q(-eps) (x) q_hat,
+        # which also replaces the DCM -> quaternion conversion of Eq. (43).
+        ex, ey, ez = -e[0], -e[1], -e[2]
+        ang = math.sqrt(ex * ex + ey * ey + ez * ez)
+        if ang > 1e-12:
+            k = math.sin(0.5 * ang) / ang
+            dq = np.array([k * ex, k * ey, k * ez, math.cos(0.5 * ang)])
+        else:
+            dq = np.array([0.5 * ex, 0.5 * ey, 0.5 * ez, 1.0])
+        q = quat_multiply(dq, self._q)
+        self._q = q / math.sqrt(float(q @ q))
+        self._R = quat_to_rotmat(self._q)
+        self._ba += dz[IBA:IBA + 3]
+        self._bg += dz[IBG:IBG + 3]
+
+    def _reopen(self, kind: str, block: slice, W: np.ndarray, y: np.ndarray) -> None:
+        """After many consecutive gate rejections: the filter is inconsistent; forget the
+        cross-correlations of the block and give it the innovation-sized variance."""
+        P = self._P
+        P[block, :] = 0.0
+        P[:, block] = 0.0
+        P[block, block] = W + np.diag(y * y)
+        self.events[f"{kind}_covariance_reopened"] += 1
+
+    # ------------------------------------------------------------------ GNSS
+    def update_gnss(self, t: float, enu_position, covariance=None) -> bool:
+        """Loosely coupled GNSS position update (rows (1) of Eqs. (45)-(47)).
+
+        ``enu_position``: antenna position in the ENU frame [m] (see LocalTangentPlane);
+        ``covariance``: 3x3 ENU covariance [m^2] or None for ``config.gnss_sigma``.
+        Before the heading is known the fixes are used for the yaw initialisation.
+        Returns True when the fix was used (applied or consumed for initialisation).
+        """
+        z = _vec3(enu_position)
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            t = math.nan
+        W = self._w_gnss
+        if covariance is not None:
+            try:
+                Wc = np.asarray(covariance, dtype=float).reshape(3, 3)
+            except (TypeError, ValueError):
+                Wc = None
+            if Wc is None or not np.all(np.isfinite(Wc)) or np.any(np.diag(Wc) <= 0):
+                z = None
+            else:
+                W = 0.5 * (Wc + Wc.T)
+        if z is None or not math.isfinite(t):
+            self.rejected["gnss_nonfinite"] += 1
+            return False
+        if self._t_gnss is not None and not t > self._t_gnss:
+            self.rejected["gnss_out_of_order"] += 1
+            return False
+        if self._t is not None and t < self._t - self.config.max_measurement_delay_s:
+            self.rejected["gnss_stale"] += 1
+            return False
+        self._t_gnss = t
+        self._last_gnss = z.copy()
+        if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
+            return True
+        if self.status == STATUS_WAIT_HEADING:
+            return self._heading_step(t, z, W)
+
+        dt = t - self._t
+        H = np.zeros((3, N_ERR))
+        H[:, IP:IP + 3] = self._eye3
+        H[:, IV:IV + 3] = dt * self._eye3
+        y = z - (self._p + dt * self._v)
+        res = self._update(y, H, W, self.config.gnss_gate_chi2)
+        return self._after_gated("gnss", res, y, H, W, slice(IP, IP + 3))
+
+    def _after_gated(self, kind: str, res: int, y, H, W, block: slice) -> bool:
+        if res == 1:
+            self._consec[kind] = 0
+            return True
+        if res == 0:
+            self.rejected[f"{kind}_gate"] += 1
+            self._consec[kind] += 1
+            if self._consec[kind] >= self.config.max_consecutive_rejections:
+                self._consec[kind] = 0
+                self._reopen(kind, block, W if W.shape[0] == 3 else np.diag(np.full(3, W[0, 0])),
+                             np.resize(y, 3))
+                return self._update(y, H, W, None) == 1
+        return False
+
+    def _heading_step(self, t: float, z: np.ndarray, W: np.ndarray) -> bool:
+        """Yaw initialisation from GNSS motion (Sec. 7.1).
+
+        The paper takes the course between the first two fixes after the vehicle starts
+        moving.  At 10 Hz that baseline is centimetres, so here all fixes from the first
+        one after moving are paired with the (yaw-provisional) INS positions at the same
+        stamps (the INS keeps running with the yaw-free speed/NH/stationary updates), and
+        once the GNSS baseline exceeds ``heading_min_baseline_m`` the 2-D rotation +
+        translation that best maps the INS track onto the GNSS track (least squares,
+        Procrustes) gives the yaw.  Its standard deviation sigma_h / sqrt(sum |r_i|^2)
+        seeds P.
+        """
+        c = self.config
+        if not self._heading_fixes and self._stationary_source(t):
+            # Still standing: keep the provisional position on the latest fix.
+            self._p = z.copy()
+            return True
+        ins = self._p + (t - self._t) * self._v if self._t is not None else self._p.copy()
+        var_h = 0.5 * (W[0, 0] + W[1, 1])
+        self._heading_fixes.append((z, ins, var_h))
+        if len(self._heading_fixes) > c.heading_max_fixes:
+            self._heading_fixes.pop(0)
+        g0 = self._heading_fixes[0][0]
+        if math.hypot(z[0] - g0[0], z[1] - g0[1]) < c.heading_min_baseline_m:
+            return True
+        G = np.array([f[0] for f in self._heading_fixes])
+        I = np.array([f[1] for f in self._heading_fixes])
+        var_h = float(np.mean([f[2] for f in self._heading_fixes]))
+        gm, im = G.mean(axis=0), I.mean(axis=0)
+        gc, ic = G[:, :2] - gm[:2], I[:, :2] - im[:2]
+        num = float(np.sum(ic[:, 0] * gc[:, 1] - ic[:, 1] * gc[:, 0]))
+        den = float(np.sum(ic[:, 0] * gc[:, 0] + ic[:, 1] * gc[:, 1]))
+        dpsi = math.atan2(num, den)
+        spread = float(np.sum(ic * ic))
+        sig_psi = max(math.sqrt(var_h / max(spread, 1e-6)), c.p0_attitude_sigma[2])
+        Rz = rot_z(dpsi)
+        # Rotate the whole navigation solution about the vertical.
+        self._q = quat_normalize(quat_multiply(np.array([0.0, 0.0, math.sin(0.5 * dpsi),
+                                                         math.cos(0.5 * dpsi)]), self._q))
+        self._R = quat_to_rotmat(self._q)
+        self._v = Rz @ self._v
+        p = self._p.copy()
+        p[:2] = gm[:2] + Rz[:2, :2] @ (p[:2] - im[:2])
+        p[2] = p[2] + (gm[2] - im[2])
+        self._p = p
+        T = np.eye(N_ERR)
+        for b in (IP, IV, IA):
+            T[b:b + 3, b:b + 3] = Rz
+        P = T @ self._P @ T.T
+        P[IP:IP + 3, :] = 0.0
+        P[:, IP:IP + 3] = 0.0
+        P[IP:IP + 3, IP:IP + 3] = W
+        P[IA + 2, :] = 0.0
+        P[:, IA + 2] = 0.0
+        P[IA + 2, IA + 2] = sig_psi ** 2
+        self._P = 0.5 * (P + P.T)
+        self._heading_fixes = []
+        self.heading_sigma_at_init = sig_psi
+        self.events["heading_initialised"] += 1
+        self.status = STATUS_RUNNING
+        return True
+
+    # ------------------------------------------------------------------ CAN speed
+    def update_speed(self, t: float, speed: float, variance: float | None = None) -> bool:
+        """CAN-bus longitudinal speed update (row (2) of Eqs. (45)-(47), body x).
+
+        Also drives stationary detection (|speed| <= stationary_speed_threshold).
+        Before alignment the speed is only stored for stationarity.  Returns True
+        when the measurement was used.
+        """
+        try:
+            t = float(t)
+            s = float(speed)
+            r = self.config.speed_sigma ** 2 if variance is None else float(variance)
+        except (TypeError, ValueError):
+            t = s = r = math.nan
+        if not (math.isfinite(t) and math.isfinite(s) and math.isfinite(r)) or r <= 0:
+            self.rejected["speed_nonfinite"] += 1
+            return False
+        if self._t_speed is not None and not t > self._t_speed:
+            self.rejected["speed_out_of_order"] += 1
+            return False
+        if self._t is not None and t < self._t - self.config.max_measurement_delay_s:
+            self.rejected["speed_stale"] += 1
+            return False
+        self._t_speed = t
+        self._last_speed = s
+        if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
+            return True
+        pred, H = self._body_speed_rows([0])
+        if self.config.speed_unsigned and pred[0] < 0.0:
+            s = -abs(s)
+        y = np.array([s - pred[0]])
+        W = np.array([[r]])
+        res = self._update(y, H, W, self.config.speed_gate_chi2)
+        return self._after_gated("speed", res, y, H, W, slice(IV, IV + 3))
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def position_enu(self) -> np.ndarray:
+        return self._p.copy()
+
+    @property
+    def velocity_enu(self) -> np.ndarray:
+        return self._v.copy()
+
+    @property
+    def velocity_body(self) -> np.ndarray:
+        return self._R.T @ self._v
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """(x, y, z, w), body FLU -> ENU."""
+        return self._q.copy()
+
+    @property
+    def rotation_matrix(self) -> np.ndarray:
+        return self._R.copy()
+
+    @property
+    def roll(self) -> float:
+        return euler_from_rotmat(self._R)[0]
+
+    @property
+    def pitch(self) -> float:
+        """REP-103 pitch about body y (positive = nose DOWN)."""
+        return euler_from_rotmat(self._R)[1]
+
+    @property
+    def yaw(self) -> float:
+        return euler_from_rotmat(self._R)[2]
+
+    @property
+    def road_grade(self) -> float:
+        """Angle of the body x axis above the horizontal [rad], positive nose-up/uphill."""
+        return math.asin(max(-1.0, min(1.0, self._R[2, 0])))
+
+    @property
+    def accel_bias(self) -> np.ndarray:
+        return self._ba.copy()
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        return self._bg.copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """15x15 error-state covariance, order [dp(ENU), dv(ENU), eps(ENU), dba(FLU), dbg(FLU)]."""
+        return self._P.copy()
+
+    @property
+    def position_covariance(self) -> np.ndarray:
+        return self._P[IP:IP + 3, IP:IP + 3].copy()
+
+    @property
+    def velocity_covariance(self) -> np.ndarray:
+        """ENU velocity covariance."""
+        return self._P[IV:IV + 3, IV:IV + 3].copy()
+
+    @property
+    def velocity_body_covariance(self) -> np.ndarray:
+        """Body (FLU) velocity covariance, including the attitude uncertainty
+        (for nav_msgs/Odometry twist, which is in the child/body frame)."""
+        Rt = self._R.T
+        J = np.hstack([Rt, -(Rt @ skew(self._v))])
+        return J @ self._P[IV:IA + 3, IV:IA + 3] @ J.T
+
+    @property
+    def attitude_covariance(self) -> np.ndarray:
+        """Attitude error covariance about the fixed ENU x, y, z axes [rad^2]
+        (the sensor_msgs/Imu and nav_msgs/Odometry convention)."""
+        return self._P[IA:IA + 3, IA:IA + 3].copy()
+
+    @property
+    def accel_bias_covariance(self) -> np.ndarray:
+        return self._P[IBA:IBA + 3, IBA:IBA + 3].copy()
+
+    @property
+    def gyro_bias_covariance(self) -> np.ndarray:
+        return self._P[IBG:IBG + 3, IBG:IBG + 3].copy()
+
+    @property
+    def road_grade_variance(self) -> float:
+        """Variance of ``road_grade`` [rad^2] from the attitude covariance.
+
+        grade = asin(e_z . R e_x);  with R_true = (I - S(eps)) R_hat,
+        d(grade) = -(eps_x b_y - eps_y b_x) / cos(grade),  b = R_hat e_x.
+        """
+        b = self._R[:, 0]
+        cg = max(math.sqrt(max(0.0, 1.0 - b[2] * b[2])), 1e-6)
+        j = np.array([-b[1], b[0], 0.0]) / cg
+        return float(j @ self._P[IA:IA + 3, IA:IA + 3] @ j)
+
+    @property
+    def pitch_variance(self) -> float:
+        """Variance of REP-103 pitch (= variance of road_grade, pitch = -grade)."""
+        return self.road_grade_variance
+
+    def compensated_imu(self, specific_force, angular_rate) -> tuple:
+        """Bias-removed (specific force, angular rate), Eq. (22)."""
+        return (np.asarray(specific_force, float) - self._ba,
+                np.asarray(angular_rate, float) - self._bg)

@@ -1,0 +1,24 @@
+"""rclpy wrappers of the estimator cores, one executable per node.
+
+``PIPELINE`` lists the nodes in data-flow order; the launcher starts them in this order and,
+for deterministic replay, gives node *i* a release delay of *i* replay ticks (see
+``nodes.base``).
+"""
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    name: str          # ROS node name
+    module: str        # python -m module runs it
+    executable: str    # console script installed under lib/vehicle_estimation
+    depth: int         # position in the data flow (fusion 0 ... mass 3)
+
+
+PIPELINE = (
+    NodeSpec("fusion", "vehicle_estimation.nodes.fusion_node", "fusion_node", 0),
+    NodeSpec("road_slope", "vehicle_estimation.nodes.slope_node", "slope_node", 1),
+    NodeSpec("vehicle_state", "vehicle_estimation.nodes.state_node", "state_node", 2),
+    NodeSpec("mass", "vehicle_estimation.nodes.mass_node", "mass_node", 3),
+)

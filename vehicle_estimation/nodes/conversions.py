@@ -1,0 +1,111 @@
+"""Message-to-array conversions of the topic contract (no node state, easy to test)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vehicle_estimation import topics
+
+NAN = float("nan")
+
+
+class MalformedMessage(ValueError):
+    """A message that cannot be read at all (e.g. JointState arrays of the wrong length)."""
+
+
+@dataclass(frozen=True)
+class JointReading:
+    position: float = NAN
+    velocity: float = NAN
+    effort: float = NAN
+
+
+def joint_readings(msg: Any) -> dict[str, JointReading]:
+    """Read a sensor_msgs/JointState into ``{name: JointReading}``.
+
+    Each of position/velocity/effort may be empty (signal not provided) or as long as
+    ``name``; anything else is malformed. Non-finite entries stay NaN: the caller decides
+    what a missing signal means.
+    """
+    names = list(msg.name)
+    n = len(names)
+    arrays = []
+    for field in ("position", "velocity", "effort"):
+        values = list(getattr(msg, field))
+        if len(values) not in (0, n):
+            raise MalformedMessage(f"JointState.{field} has {len(values)} entries for {n} names")
+        arrays.append(values if values else [NAN] * n)
+    out: dict[str, JointReading] = {}
+    for name, p, v, e in zip(names, *arrays):
+        out[name] = JointReading(_finite_or_nan(p), _finite_or_nan(v), _finite_or_nan(e))
+    return out
+
+
+def _finite_or_nan(x: Any) -> float:
+    try:
+        value = float(x)
+    except (TypeError, ValueError):
+        return NAN
+    return value if math.isfinite(value) else NAN
+
+
+@dataclass(frozen=True)
+class ChassisReading:
+    """The chassis signals of ``vehicle/joint_states``."""
+
+    wheel_speeds: np.ndarray          # (4,) rad/s [fl, fr, rl, rr], NaN where missing
+    brake_torques: np.ndarray         # (4,) N m, NaN where missing
+    steering_wheel_angle: float       # rad, NaN if missing
+
+    @property
+    def total_brake_torque(self) -> float:
+        finite = self.brake_torques[np.isfinite(self.brake_torques)]
+        return float(np.sum(finite)) if finite.size else NAN
+
+
+def chassis_reading(msg: Any) -> ChassisReading:
+    joints = joint_readings(msg)
+    wheels = [joints.get(name, JointReading()) for name in topics.WHEEL_JOINTS]
+    steering = joints.get(topics.STEERING_JOINT, JointReading())
+    return ChassisReading(
+        wheel_speeds=np.array([w.velocity for w in wheels]),
+        brake_torques=np.array([w.effort for w in wheels]),
+        steering_wheel_angle=steering.position,
+    )
+
+
+@dataclass(frozen=True)
+class PowertrainReading:
+    engine_speed: float     # rad/s
+    engine_torque: float    # N m
+    engine_load: float      # 0..1 (OBD-II PID 04)
+    gear: float             # gear number, NaN if not reported
+    drive_force: float      # N at the wheels
+
+
+def powertrain_reading(msg: Any) -> PowertrainReading:
+    joints = joint_readings(msg)
+    engine = joints.get(topics.ENGINE_JOINT, JointReading())
+    load = joints.get(topics.ENGINE_LOAD_JOINT, JointReading()).position
+    if math.isfinite(load) and not -0.01 <= load <= 1.01:
+        load = NAN
+    gear = joints.get(topics.GEAR_JOINT, JointReading()).position
+    if math.isfinite(gear) and (gear < 0.5 or gear > 40):
+        gear = NAN
+    return PowertrainReading(
+        engine_speed=engine.velocity,
+        engine_torque=engine.effort,
+        engine_load=load,
+        gear=gear,
+        drive_force=joints.get(topics.DRIVE_JOINT, JointReading()).effort,
+    )
+
+
+def imu_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Specific force and angular rate of a sensor_msgs/Imu (body frame, REP-145)."""
+    a, w = msg.linear_acceleration, msg.angular_velocity
+    return np.array([a.x, a.y, a.z], dtype=float), np.array([w.x, w.y, w.z], dtype=float)

@@ -1,0 +1,201 @@
+"""Fusion node: IMU + GNSS + CAN speed in the error-state EKF of paper 003 (Sec. 5, Alg. 1).
+
+Subscribes (sensor-data QoS): ``imu/data``, ``gnss/fix``, ``vehicle/speed``.
+Publishes: ``estimation/odometry`` (pose in ENU ``odom``, twist in ``base_link``),
+``estimation/imu`` (bias-compensated IMU with the estimated orientation, every IMU sample) and
+``estimation/fusion/road_grade`` (pitch-derived grade, stamped companion: x = grade [rad,
++uphill], y = variance, z = converged).
+
+The ENU origin of ``odom`` is the first valid GNSS fix; fixes with ``status.status < 0`` are
+ignored and counted.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu, NavSatFix, NavSatStatus
+
+from vehicle_estimation import topics
+from vehicle_estimation.core.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.core.geodesy import LocalTangentPlane
+from vehicle_estimation.nodes.base import (
+    EstimatorNode, ParameterError, companion, finite, run_node, sec_to_stamp)
+
+FUSION_GRADE = topics.FUSION_GRADE
+
+# Physical plausibility limits for raw inputs (beyond these a value is a fault, not a reading).
+MAX_SPECIFIC_FORCE = 160.0   # m/s^2, ~16 g: a car IMU saturates well below
+MAX_ANGULAR_RATE = 35.0      # rad/s, ~2000 deg/s
+MAX_SPEED = 120.0            # m/s
+
+
+class FusionNode(EstimatorNode):
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("fusion", **node_kwargs)
+        defaults = FusionConfig()
+        cfg: dict[str, float] = {}
+        # Expose the float fields of FusionConfig as fusion.* parameters (Tables 2-3 defaults).
+        for name, value in vars(defaults).items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                continue
+            cfg[name] = self.declare_float(f"fusion.{name}", float(value),
+                                           f"FusionConfig.{name} (paper 003 Tables 2-3 default)")
+        try:
+            config = FusionConfig(**{**vars(defaults), **{
+                k: (type(getattr(defaults, k))(v)) for k, v in cfg.items()}})
+            config.validate()
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"fusion.*: {exc}") from exc
+        self.config = config
+        self.odometry_rate = self.declare_float(
+            "odometry_rate_hz", 50.0, "Rate of estimation/odometry and the grade [Hz]", 0.1, 1000.0)
+        self.base_frame = self.declare_str("base_frame", topics.BASE_FRAME, "Body frame id")
+        self.odom_frame = self.declare_str("odom_frame", topics.ODOM_FRAME, "ENU world frame id")
+
+        self.ekf = FusionEKF(config)
+        self.origin: LocalTangentPlane | None = None
+        self._last_odom_t = -math.inf
+        self._last_angular_rate = np.zeros(3)
+
+        self.pub_odom = self.publisher(Odometry, topics.ODOMETRY)
+        self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
+        self.pub_grade = self.publisher(Vector3Stamped, FUSION_GRADE)
+        self.subscribe_primary(Imu, topics.IMU, self.on_imu)
+        self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
+        self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
+
+    # -------------------------------------------------------------- inputs
+    def on_imu(self, t: float, msg: Imu) -> None:
+        f = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+        w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
+            self.reject("imu:non_finite")
+            return
+        if np.max(np.abs(f)) > MAX_SPECIFIC_FORCE or np.max(np.abs(w)) > MAX_ANGULAR_RATE:
+            self.reject("imu:implausible")
+            return
+        self._last_angular_rate = w
+        if not self.ekf.process_imu(t, f, w):
+            self.reject("imu:out_of_order")
+            return
+        if not self.ekf.initialized:
+            self.set_missing("initialisation: " + self.ekf.status, True)
+            return
+        self._missing = {m for m in self._missing if not m.startswith("initialisation")}
+        self.publish_imu(t, msg, f, w)
+        if t - self._last_odom_t >= 1.0 / self.odometry_rate - 1e-9:
+            self._last_odom_t = t
+            self.publish_odometry(t)
+
+    def on_gnss(self, t: float, msg: NavSatFix) -> None:
+        if msg.status.status < NavSatStatus.STATUS_FIX:
+            self.reject("gnss:no_fix")
+            return
+        if not finite(msg.latitude, msg.longitude, msg.altitude) or abs(msg.latitude) > 90.0 \
+                or abs(msg.longitude) > 180.0:
+            self.reject("gnss:invalid_position")
+            return
+        if self.origin is None:
+            self.origin = LocalTangentPlane(msg.latitude, msg.longitude, msg.altitude)
+            self.note_event(f"ENU origin set at {msg.latitude:.7f}, {msg.longitude:.7f}, "
+                            f"{msg.altitude:.2f} m")
+        enu = np.asarray(self.origin.to_enu(msg.latitude, msg.longitude, msg.altitude), dtype=float)
+        cov = None
+        if msg.position_covariance_type != NavSatFix.COVARIANCE_TYPE_UNKNOWN:
+            c = np.array(msg.position_covariance, dtype=float).reshape(3, 3)
+            if np.all(np.isfinite(c)) and np.all(np.diag(c) > 0.0):
+                cov = c
+        if not self.ekf.update_gnss(t, enu, cov):
+            self.reject("gnss:rejected_by_filter")
+
+    def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
+        v = msg.twist.twist.linear.x
+        if not math.isfinite(v) or abs(v) > MAX_SPEED:
+            self.reject("speed:invalid")
+            return
+        var = msg.twist.covariance[0]
+        variance = var if math.isfinite(var) and var > 0.0 else None
+        if not self.ekf.update_speed(t, v, variance):
+            self.reject("speed:rejected_by_filter")
+
+    # -------------------------------------------------------------- outputs
+    def publish_imu(self, t: float, raw: Imu, f: np.ndarray, w: np.ndarray) -> None:
+        fc, wc = self.ekf.compensated_imu(f, w)
+        out = Imu()
+        out.header.stamp = raw.header.stamp
+        out.header.frame_id = self.base_frame
+        q = self.ekf.quaternion
+        out.orientation.x, out.orientation.y, out.orientation.z, out.orientation.w = (float(v) for v in q)
+        out.orientation_covariance = _flat3(self.ekf.attitude_covariance)
+        out.linear_acceleration.x, out.linear_acceleration.y, out.linear_acceleration.z = (float(v) for v in fc)
+        out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (float(v) for v in wc)
+        out.linear_acceleration_covariance = list(raw.linear_acceleration_covariance)
+        out.angular_velocity_covariance = list(raw.angular_velocity_covariance)
+        self.publish(self.pub_imu, out)
+
+    def publish_odometry(self, t: float) -> None:
+        ekf = self.ekf
+        p, v_body, q = ekf.position_enu, ekf.velocity_body, ekf.quaternion
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v_body)) and np.all(np.isfinite(q))):
+            self.reject("fusion:non_finite_state")
+            self.note_event("fusion state became non-finite: resetting")
+            self.reset_estimators()
+            return
+        odom = Odometry()
+        sec_to_stamp(t, odom.header.stamp)
+        odom.header.frame_id = self.odom_frame
+        odom.child_frame_id = self.base_frame
+        odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z = (float(x) for x in p)
+        o = odom.pose.pose.orientation
+        o.x, o.y, o.z, o.w = (float(x) for x in q)
+        pose_cov = np.zeros((6, 6))
+        pose_cov[:3, :3] = ekf.position_covariance
+        pose_cov[3:, 3:] = ekf.attitude_covariance
+        odom.pose.covariance = [float(x) for x in pose_cov.ravel()]
+        lin = odom.twist.twist.linear
+        lin.x, lin.y, lin.z = (float(x) for x in v_body)
+        _, wc = ekf.compensated_imu(np.zeros(3), self._last_angular_rate)
+        ang = odom.twist.twist.angular
+        ang.x, ang.y, ang.z = (float(x) for x in wc)
+        twist_cov = np.zeros((6, 6))
+        twist_cov[:3, :3] = ekf.velocity_body_covariance
+        twist_cov[3:, 3:] = ekf.gyro_bias_covariance
+        odom.twist.covariance = [float(x) for x in twist_cov.ravel()]
+        self.publish(self.pub_odom, odom)
+        grade_var = float(ekf.road_grade_variance)
+        self.publish(self.pub_grade, companion(t, float(ekf.road_grade), grade_var,
+                                               grade_var < (0.5 * math.pi / 180.0) ** 2, self.base_frame))
+
+    # -------------------------------------------------------------- bookkeeping
+    def reset_estimators(self) -> None:
+        self.ekf.reset()
+        self._last_odom_t = -math.inf
+
+    def status_values(self) -> dict[str, str]:
+        ekf = self.ekf
+        values = {"filter status": ekf.status, "initialized": str(ekf.initialized)}
+        if ekf.initialized:
+            values.update({
+                "road grade [deg]": f"{math.degrees(ekf.road_grade):.3f}",
+                "accel bias [m/s^2]": np.array2string(ekf.accel_bias, precision=4),
+                "gyro bias [rad/s]": np.array2string(ekf.gyro_bias, precision=6),
+            })
+        for k, v in getattr(ekf, "rejected", {}).items():
+            values[f"filter rejected {k}"] = str(v)
+        return values
+
+
+def _flat3(m: np.ndarray) -> list[float]:
+    return [float(x) for x in np.asarray(m, dtype=float).reshape(9)]
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(FusionNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,150 @@
+"""Road-slope node.
+
+Methods (parameter ``method``):
+
+* ``fusion_pitch`` (default): the grade of paper 003 Sec. 7.2, i.e. the pitch of the fusion
+  node's error-state EKF (``estimation/fusion/road_grade``), smoothed as paper 003 Sec. 7.1 does.
+* ``classical``: the observer of paper 004 Eqs. 32-33 on the bias-compensated longitudinal
+  specific force and the vehicle speed (θ̇ = 0 slope model).
+
+Subscribes: ``imu/data`` (sensor-data QoS, the trigger), ``vehicle/speed`` (sensor-data QoS,
+speed fallback), ``estimation/imu`` (fusion bias), ``estimation/fusion/road_grade``,
+``estimation/vehicle_state`` (speed from the state node, paper 004 Fig. 1: slope <- state).
+Publishes ``estimation/road_slope`` (std_msgs/Float64, rad, +uphill) and
+``estimation/road_slope_stamped`` (geometry_msgs/Vector3Stamped: x = slope, y = variance,
+z = converged 1/0).
+"""
+
+from __future__ import annotations
+
+import math
+
+from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu
+from std_msgs.msg import Float64
+
+from vehicle_estimation import topics
+from vehicle_estimation.core import slope as slope_core
+from vehicle_estimation.nodes.base import (
+    EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
+    run_node, stamp_to_sec)
+from vehicle_estimation.nodes.conversions import imu_arrays
+
+METHODS = tuple(slope_core.SLOPE_METHODS)
+#: Variance published while no estimate exists yet: a 10 deg 1-sigma prior.
+PRIOR_VARIANCE = math.radians(10.0) ** 2
+#: Upstream values older than this are treated as missing [s].
+STALE_AFTER_S = 1.0
+
+
+class SlopeNode(EstimatorNode):
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("road_slope", **node_kwargs)
+        self.vehicle = self.declare_vehicle()
+        self.method = self.declare_str("method", "fusion_pitch", "Slope method", METHODS)
+        self.rate = self.declare_float("publish_rate_hz", 50.0, "Output rate [Hz]", 0.1, 1000.0)
+        self.core = self._make_core()
+        self.bias = FusionImuBias()
+        self.grade = UpstreamHistory()
+        self.state_speed = UpstreamHistory(lag_s=self.feedback_lag)
+        self.odom_speed = UpstreamHistory()
+        self.can_speed: tuple[float, float] | None = None
+        self._last_pub = -math.inf
+
+        self.pub = self.publisher(Float64, topics.ROAD_SLOPE)
+        self.pub_stamped = self.publisher(Vector3Stamped, topics.ROAD_SLOPE_STAMPED)
+        self.subscribe_primary(Imu, topics.IMU, self.on_imu)
+        self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
+        self.subscribe_upstream(Imu, topics.IMU_COMPENSATED, self.bias.history, self.bias.convert)
+        self.subscribe_upstream(Vector3Stamped, topics.FUSION_GRADE, self.grade, companion_value)
+        self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
+                                _twist_speed)
+        self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, _odom_speed)
+
+    def _make_core(self):
+        cls = slope_core.SLOPE_METHODS[self.method]
+        try:
+            return cls()
+        except ValueError as exc:
+            raise ParameterError(f"method '{self.method}': {exc}") from exc
+
+    def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
+        v = msg.twist.twist.linear.x
+        if math.isfinite(v) and abs(v) < 120.0:
+            self.can_speed = (t, v)
+        else:
+            self.reject("speed:invalid")
+
+    def speed_at(self, t: float) -> float | None:
+        """Vehicle speed for the observer: state node, else fusion, else CAN."""
+        for source, history in (("vehicle_state", self.state_speed), ("odometry", self.odom_speed)):
+            item = history.at(t)
+            if item is not None and t - item[0] < STALE_AFTER_S:
+                return item[1]
+        if self.can_speed is not None and t - self.can_speed[0] < STALE_AFTER_S:
+            return self.can_speed[1]
+        return None
+
+    def on_imu(self, t: float, msg: Imu) -> None:
+        f, w = imu_arrays(msg)
+        if not all(math.isfinite(x) for x in (*f, *w)):
+            self.reject("imu:non_finite")
+            return
+        f, w = self.bias.correct(t, f, w)
+        if self.method == "fusion_pitch":
+            item = self.grade.at(t)
+            missing = item is None or t - item.stamp > STALE_AFTER_S
+            self.set_missing("fusion road grade", missing)
+            if not missing and not self.core.step(t, item.value, item.variance):
+                self.reject("slope:rejected_by_core")
+        else:
+            speed = self.speed_at(t)
+            self.set_missing("vehicle speed", speed is None)
+            if speed is not None and not self.core.step(t, float(f[0]), speed, yaw_rate=float(w[2])):
+                self.reject("slope:rejected_by_core")
+        if t - self._last_pub >= 1.0 / self.rate - 1e-9:
+            self._last_pub = t
+            self.publish_estimate(t)
+
+    def publish_estimate(self, t: float) -> None:
+        slope, variance, converged = self.core.slope, self.core.variance, self.core.converged
+        if not (math.isfinite(slope) and math.isfinite(variance)):
+            slope, variance, converged = 0.0, PRIOR_VARIANCE, False
+        if self._missing:
+            variance = max(variance, PRIOR_VARIANCE)
+            converged = False
+        self.publish(self.pub_stamped, companion(t, slope, variance, converged))
+        self.publish(self.pub, Float64(data=float(slope)))
+
+    def reset_estimators(self) -> None:
+        self.core = self._make_core()
+        self.bias.clear()
+        for history in (self.grade, self.state_speed, self.odom_speed):
+            history.clear()
+        self.can_speed = None
+        self._last_pub = -math.inf
+
+    def status_values(self) -> dict[str, str]:
+        return {"method": self.method, "slope [deg]": f"{math.degrees(self.core.slope):.3f}",
+                "converged": str(self.core.converged), "imu bias from fusion": str(self.bias.valid)}
+
+
+def _twist_speed(msg: TwistWithCovarianceStamped) -> tuple[float, float] | None:
+    t = stamp_to_sec(msg.header.stamp)
+    v = msg.twist.twist.linear.x
+    return (t, (t, v)) if math.isfinite(v) else None
+
+
+def _odom_speed(msg: Odometry) -> tuple[float, float] | None:
+    t = stamp_to_sec(msg.header.stamp)
+    v = msg.twist.twist.linear.x
+    return (t, (t, v)) if math.isfinite(v) else None
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(SlopeNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,171 @@
+"""Vehicle-state node: vx, vy, yaw rate and sideslip on the paper-004 4-wheel model.
+
+Filter (parameter ``filter``): ``ckf``, the cubature Kalman filter of paper 004 Sec. 4 with
+Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14.
+
+Subscribes (sensor-data QoS): ``imu/data`` (measurement [ax, ay, r], the trigger),
+``vehicle/joint_states`` (steering-wheel angle, four wheel speeds). From other nodes:
+``estimation/imu`` (fusion IMU bias), ``estimation/road_slope_stamped`` and
+``estimation/mass_stamped`` (paper 004 Fig. 1: state <- slope, mass). Before the slope or
+mass arrive the filter uses slope 0 and the vehicle's nominal mass, and says so in
+``/diagnostics``.
+
+Wheel speeds missing: the inputs carry NaN wheel speeds and the core propagates vx with the
+measured longitudinal acceleration instead of the wheel-slip tyre forces (see
+``core.vehicle_model``). Steering missing: the sample is used with the last steering angle
+for at most ``stale_input_s``, then the filter runs on the IMU alone (δ = 0) and
+diagnostics report it.
+
+Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped in
+``base_link``: linear.x = vx, linear.y = vy, angular.z = yaw rate; covariance rows/cols
+0, 1, 5), ``estimation/sideslip`` (std_msgs/Float64, rad) and ``estimation/sideslip_stamped``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64
+
+from vehicle_estimation import topics
+from vehicle_estimation.core.ckf import VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.core.vehicle_model import VehicleInputs
+from vehicle_estimation.nodes.base import (
+    EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
+    run_node, sec_to_stamp)
+from vehicle_estimation.nodes.conversions import MalformedMessage, chassis_reading, imu_arrays
+
+FILTERS = ("ckf",)
+STALE_AFTER_S = 1.0
+
+
+class StateNode(EstimatorNode):
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("vehicle_state", **node_kwargs)
+        self.vehicle = self.declare_vehicle()
+        self.filter_name = self.declare_str("filter", "ckf", "Vehicle-state filter", FILTERS)
+        self.rate = self.declare_float("publish_rate_hz", 100.0, "Output rate [Hz]", 0.1, 1000.0)
+        self.stale_input_s = self.declare_float(
+            "stale_input_s", 0.5, "Chassis signals older than this count as missing [s]", 0.01, 10.0)
+        self.initial_vx = self.declare_float(
+            "initial_vx", 0.0, "Initial longitudinal speed of the filter [m/s] (paper 004: 80/3.6)",
+            -100.0, 100.0)
+        self.init_from_wheels = self.declare_bool(
+            "init_vx_from_wheel_speeds", True,
+            "Start vx from the rear wheel speeds when available (else from initial_vx)")
+        self.core = self._make_core()
+        self.bias = FusionImuBias()
+        self.slope = UpstreamHistory()
+        self.mass = UpstreamHistory(lag_s=self.feedback_lag)
+        self.chassis = None
+        self.chassis_t = -math.inf
+        self._last_pub = -math.inf
+
+        self.pub_state = self.publisher(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
+        self.pub_beta = self.publisher(Float64, topics.SIDESLIP)
+        self.pub_beta_stamped = self.publisher(Vector3Stamped, topics.SIDESLIP_STAMPED)
+        self.subscribe_primary(Imu, topics.IMU, self.on_imu)
+        self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
+        self.subscribe_upstream(Imu, topics.IMU_COMPENSATED, self.bias.history, self.bias.convert)
+        self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
+        self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
+
+    def _make_core(self) -> VehicleStateCKF:
+        try:
+            config = VehicleStateConfig(initial_vx=self.initial_vx,
+                                        init_vx_from_wheel_speeds=self.init_from_wheels)
+            config.validate()
+            return VehicleStateCKF(self.vehicle, config)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"filter '{self.filter_name}': {exc}") from exc
+
+    def on_joint_states(self, t: float, msg: JointState) -> None:
+        try:
+            reading = chassis_reading(msg)
+        except MalformedMessage:
+            self.reject("joint_states:malformed")
+            return
+        self.chassis = reading
+        self.chassis_t = t
+
+    def _upstream(self, history: UpstreamHistory, t: float, default: float, what: str) -> float:
+        item = history.at(t)
+        missing = item is None or t - item.stamp > STALE_AFTER_S
+        self.set_missing(what, missing)
+        return default if missing else item.value
+
+    def on_imu(self, t: float, msg: Imu) -> None:
+        f, w = imu_arrays(msg)
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
+            self.reject("imu:non_finite")
+            return
+        f, w = self.bias.correct(t, f, w)
+        fresh = self.chassis is not None and t - self.chassis_t <= self.stale_input_s
+        self.set_missing("vehicle/joint_states", not fresh)
+        if fresh:
+            steer = self.chassis.steering_wheel_angle / self.vehicle.steering_ratio
+            wheels = self.chassis.wheel_speeds
+        else:
+            steer, wheels = 0.0, np.full(4, np.nan)
+        if not math.isfinite(steer):
+            steer = 0.0
+        inputs = VehicleInputs(
+            steer_angle=steer,
+            wheel_speeds=wheels,
+            slope=self._upstream(self.slope, t, 0.0, "road slope"),
+            mass=self._upstream(self.mass, t, self.vehicle.mass, "mass"),
+        )
+        z = np.array([f[0], f[1], w[2]])
+        if not self.core.step(t, inputs, z):
+            self.reject("state:rejected_by_filter")
+        if t - self._last_pub >= 1.0 / self.rate - 1e-9:
+            self._last_pub = t
+            self.publish_state(t)
+
+    def publish_state(self, t: float) -> None:
+        x, P = np.asarray(self.core.x, dtype=float), np.asarray(self.core.P, dtype=float)
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            self.reject("state:non_finite")
+            self.note_event("vehicle-state filter became non-finite: re-initialising")
+            self.core.reset()
+            return
+        msg = TwistWithCovarianceStamped()
+        sec_to_stamp(t, msg.header.stamp)
+        msg.header.frame_id = topics.BASE_FRAME
+        msg.twist.twist.linear.x = float(x[0])
+        msg.twist.twist.linear.y = float(x[1])
+        msg.twist.twist.angular.z = float(x[2])
+        cov = np.zeros((6, 6))
+        idx = [0, 1, 5]
+        cov[np.ix_(idx, idx)] = P[:3, :3]
+        for i in (2, 3, 4):
+            cov[i, i] = 1e6  # not estimated: vz, roll rate, pitch rate
+        msg.twist.covariance = [float(c) for c in cov.ravel()]
+        self.publish(self.pub_state, msg)
+        beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
+        self.publish(self.pub_beta_stamped, companion(t, beta, beta_var, not self._missing))
+        self.publish(self.pub_beta, Float64(data=beta))
+
+    def reset_estimators(self) -> None:
+        self.core = self._make_core()
+        self.bias.clear()
+        self.slope.clear()
+        self.mass.clear()
+        self.chassis = None
+        self._last_pub = -math.inf
+
+    def status_values(self) -> dict[str, str]:
+        x = self.core.x
+        return {"filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
+                "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(StateNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,360 @@
+"""Replay a rosbag2 through the nodes, losslessly and deterministically, and record the outputs.
+
+The player reads a bag (MCAP or sqlite3, written by anyone) with ``rosbags`` and publishes
+the raw CDR of every input topic of the contract. Time advances in ticks of
+``tick_s`` of bag time. For each tick the player
+
+1. publishes the bag messages logged in the tick, and ``/clock``;
+2. publishes a sync request (``replay/sync``) carrying the tick time and how many messages it
+   has published on each topic;
+3. waits until every node has received all of them, processed its inputs up to the tick
+   minus its release delay, and every estimate published so far has reached every
+   subscriber (including the recorder).
+
+So no message is lost however slow a node is, the replay runs as fast as the slowest node
+allows, and the result does not depend on scheduling (see ``nodes.base``). Ground-truth
+topics of the input bag are copied to the output bag unchanged.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+from rosgraph_msgs.msg import Clock
+
+from vehicle_estimation import topics
+from vehicle_estimation.nodes import PIPELINE
+from vehicle_estimation.nodes.base import (
+    ACK_TOPIC, MATCHED_PREFIX, RX_PREFIX, SOURCES_PREFIX, SYNC_TOPIC, TX_PREFIX, replay_qos)
+
+#: Estimates recorded to the output bag (relative names, resolved in the node namespace).
+RECORDED_TOPICS = (
+    (topics.ODOMETRY, "nav_msgs/msg/Odometry"),
+    (topics.IMU_COMPENSATED, "sensor_msgs/msg/Imu"),
+    (topics.FUSION_GRADE, "geometry_msgs/msg/Vector3Stamped"),
+    (topics.ROAD_SLOPE, "std_msgs/msg/Float64"),
+    (topics.ROAD_SLOPE_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
+    (topics.VEHICLE_STATE, "geometry_msgs/msg/TwistWithCovarianceStamped"),
+    (topics.SIDESLIP, "std_msgs/msg/Float64"),
+    (topics.SIDESLIP_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
+    (topics.MASS, "std_msgs/msg/Float64"),
+    (topics.MASS_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
+)
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+
+DEFAULT_TICK_S = 0.1
+
+
+class ReplayError(RuntimeError):
+    pass
+
+
+def release_delays(tick_s: float) -> dict[str, dict[str, str]]:
+    """Per-node ``-p`` overrides for deterministic replay (see ``nodes.base``)."""
+    overrides = {}
+    for spec in PIPELINE:
+        overrides[spec.name] = {
+            "use_sim_time": "true",
+            "sync.enabled": "true",
+            "sync.release_delay": repr(spec.depth * tick_s),
+            # A feedback edge goes from a deeper node back to a shallower one: its values are
+            # produced up to (depth difference + 1) ticks later, so lag by the whole pipeline.
+            "sync.feedback_lag": repr((len(PIPELINE) + 1) * tick_s),
+        }
+    return overrides
+
+
+def msg_class(type_name: str) -> Any:
+    package, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+
+
+def _norm(topic: str) -> str:
+    return topic.lstrip("/")
+
+
+@dataclass
+class ReplayStats:
+    read: Counter = field(default_factory=Counter)        # topic -> messages read from the bag
+    processed: dict[str, int] = field(default_factory=dict)  # topic -> min received over nodes
+    recorded: Counter = field(default_factory=Counter)
+    wall_s: float = 0.0
+    bag_s: float = 0.0
+    ticks: int = 0
+
+    @property
+    def lossless(self) -> bool:
+        return all(self.processed.get(t, -1) == n for t, n in self.read.items())
+
+
+class ReplayDriver(Node):
+    """The player and recorder node living in the launcher process."""
+
+    def __init__(self, namespace: str, node_names: Iterable[str], writer: Writer | None,
+                 typestore: Any, diagnostics: bool = True) -> None:
+        super().__init__("replay_player", namespace=namespace)
+        self.expected_nodes = {self._fq(namespace, n) for n in node_names}
+        self.acks: dict[str, dict[str, Any]] = {}
+        self.tx: Counter[str] = Counter()
+        self.raw_publishers: dict[str, Any] = {}
+        self.writer = writer
+        self.typestore = typestore
+        self.recorded: Counter[str] = Counter()
+        self._rec_connections: dict[str, Any] = {}
+        self.now_ns = 0
+        reliable = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                              history=HistoryPolicy.KEEP_LAST, depth=10000)
+        self.reliable = reliable
+        self.clock_pub = self.create_publisher(Clock, "/clock", 10)
+        self.sync_pub = self.create_publisher(DiagnosticStatus, SYNC_TOPIC, replay_qos())
+        self.create_subscription(DiagnosticStatus, ACK_TOPIC, self._on_ack, replay_qos())
+        self.record_subs = {}
+        recorded = list(RECORDED_TOPICS) + ([("/diagnostics", DIAGNOSTICS_TYPE)] if diagnostics else [])
+        for topic, type_name in recorded:
+            holder: dict[str, str] = {}
+            sub = self.create_subscription(
+                msg_class(type_name), topic,
+                lambda data, h=holder: self._on_record(h["topic"], data), reliable, raw=True)
+            holder["topic"] = sub.topic_name
+            self.record_subs[sub.topic_name] = sub
+            if writer is not None:
+                self._rec_connections[sub.topic_name] = writer.add_connection(
+                    sub.topic_name, type_name, typestore=typestore)
+
+    @staticmethod
+    def _fq(namespace: str, name: str) -> str:
+        ns = namespace.rstrip("/")
+        return f"{ns}/{name}" if ns else f"/{name}"
+
+    def _on_record(self, topic: str, data: bytes) -> None:
+        self.recorded[topic] += 1
+        if self.writer is not None:
+            self.writer.write(self._rec_connections[topic], self.now_ns, data)
+
+    def raw_publisher(self, topic: str, type_name: str) -> Any:
+        if topic not in self.raw_publishers:
+            pub = self.create_publisher(msg_class(type_name), topic, self.reliable)
+            self.raw_publishers[topic] = pub
+        return self.raw_publishers[topic]
+
+    def _on_ack(self, msg: DiagnosticStatus) -> None:
+        entry: dict[str, Any] = {"tick": msg.message, "rx": {}, "tx": {}, "matched": {}, "sources": {}}
+        for kv in msg.values:
+            for prefix, key in ((RX_PREFIX, "rx"), (TX_PREFIX, "tx"), (MATCHED_PREFIX, "matched"),
+                                (SOURCES_PREFIX, "sources")):
+                if kv.key.startswith(prefix):
+                    entry[key][kv.key[len(prefix):]] = int(kv.value)
+        self.acks[msg.name] = entry
+
+    # ---------------------------------------------------------------- protocol
+    def send_sync(self, tick_label: str) -> None:
+        msg = DiagnosticStatus(name="replay", message=tick_label)
+        msg.values = [KeyValue(key=TX_PREFIX + pub.topic_name, value=str(self.tx[pub.topic_name]))
+                      for pub in self.raw_publishers.values()]
+        self.sync_pub.publish(msg)
+
+    def publish_raw(self, topic: str, data: bytes) -> None:
+        pub = self.raw_publishers[topic]
+        pub.publish(data)
+        self.tx[pub.topic_name] += 1
+
+    def totals(self) -> Counter[str]:
+        total = Counter(self.tx)
+        for ack in self.acks.values():
+            total.update(ack["tx"])
+        return total
+
+    def quiescent(self, tick_label: str) -> bool:
+        if set(self.acks) < self.expected_nodes:
+            return False
+        if any(self.acks[n]["tick"] != tick_label for n in self.expected_nodes):
+            return False
+        total = self.totals()
+        for name in self.expected_nodes:
+            for topic, n in self.acks[name]["rx"].items():
+                if n != total.get(topic, 0):
+                    return False
+        return all(self.recorded[t] == total.get(t, 0) for t in self.record_subs if t != "/diagnostics")
+
+    def connected(self) -> bool:
+        """Every publisher sees every subscriber of its topic, and vice versa."""
+        if set(self.acks) < self.expected_nodes:
+            return False
+        readers: Counter[str] = Counter()
+        for name in self.expected_nodes:
+            readers.update(self.acks[name]["rx"].keys())
+        for topic in self.record_subs:
+            readers[topic] += 1
+        for topic, pub in self.raw_publishers.items():
+            if pub.get_subscription_count() < readers[pub.topic_name]:
+                return False
+        for name in self.expected_nodes:
+            ack = self.acks[name]
+            for topic, matched in ack["matched"].items():
+                if matched < readers[topic]:
+                    return False
+            for topic, sources in ack["sources"].items():
+                publishers = int(any(p.topic_name == topic for p in self.raw_publishers.values())
+                                 or any(topic in self.acks[o]["matched"] for o in self.acks))
+                if sources < publishers:
+                    return False
+        for topic, sub in self.record_subs.items():
+            if topic != "/diagnostics" and sub.get_publisher_count() < 1:
+                return False
+        return True
+
+
+def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
+           tick_s: float = DEFAULT_TICK_S, progress: bool = True, startup_timeout: float = 60.0,
+           stall_timeout: float = 60.0) -> ReplayStats:
+    """Play ``bag`` through nodes started by ``group_factory(overrides)``; record to ``out``."""
+    stats = ReplayStats()
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    input_topics = {t for t in topics.INPUT_TOPICS}
+    truth_topics = {t for t in topics.GROUND_TRUTH_TOPICS}
+    group = group_factory(release_delays(tick_s))
+    writer = None
+    if out is not None:
+        if out.exists():
+            raise ReplayError(f"output bag {out} exists already")
+        writer = Writer(out, version=8, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+    rclpy.init(args=["--ros-args", "-p", "use_sim_time:=false"])
+    driver = ReplayDriver(namespace, [s.name for s in PIPELINE], writer, typestore)
+    executor = SingleThreadedExecutor()
+    executor.add_node(driver)
+    group.start()
+    wall0 = time.monotonic()
+    try:
+        with AnyReader([bag], default_typestore=typestore) as reader:
+            play = [c for c in reader.connections if _norm(c.topic) in input_topics]
+            truth = [c for c in reader.connections if _norm(c.topic) in truth_topics]
+            if not play:
+                raise ReplayError(f"{bag}: none of the input topics {sorted(input_topics)} is in the bag")
+            for conn in play:
+                driver.raw_publisher(_norm(conn.topic), conn.msgtype)
+            truth_conns = {}
+            if writer is not None:
+                for conn in truth:
+                    truth_conns[conn.id] = writer.add_connection(
+                        "/" + _norm(conn.topic), conn.msgtype, typestore=typestore)
+            t_start, t_end = reader.start_time, reader.end_time
+            _handshake(driver, executor, group, t_start, startup_timeout)
+            tick_ns = int(round(tick_s * 1e9))
+            next_tick = t_start + tick_ns
+            play_ids = {c.id: _norm(c.topic) for c in play}
+            for conn, timestamp, data in reader.messages(connections=play + truth):
+                if conn.id in truth_conns:
+                    writer.write(truth_conns[conn.id], timestamp, data)
+                    continue
+                while timestamp >= next_tick:
+                    _tick(driver, executor, group, next_tick, stall_timeout)
+                    stats.ticks += 1
+                    next_tick += tick_ns
+                    if progress:
+                        _progress(next_tick - t_start, t_end - t_start, wall0)
+                topic = play_ids[conn.id]
+                driver.publish_raw(topic, bytes(data))
+                stats.read[driver.raw_publishers[topic].topic_name] += 1
+            # Flush: advance past the end by the deepest release delay plus two ticks.
+            flush_end = t_end + int((len(PIPELINE) + 2) * tick_ns)
+            while next_tick <= flush_end:
+                _tick(driver, executor, group, next_tick, stall_timeout)
+                stats.ticks += 1
+                next_tick += tick_ns
+            if progress:
+                _progress(t_end - t_start, t_end - t_start, wall0)
+                print(file=sys.stderr)
+            stats.bag_s = (t_end - t_start) * 1e-9
+    finally:
+        stats.wall_s = time.monotonic() - wall0
+        group.stop()
+        for topic in stats.read:
+            counts = [ack["rx"][topic] for ack in driver.acks.values() if topic in ack["rx"]]
+            stats.processed[topic] = min(counts) if counts else 0
+        stats.recorded = Counter(driver.recorded)
+        executor.shutdown()
+        driver.destroy_node()
+        rclpy.try_shutdown()
+        if writer is not None:
+            writer.close()
+    return stats
+
+
+def _spin_until(driver, executor, group, predicate, resend, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    last_send = time.monotonic()
+    resend()
+    while not predicate():
+        executor.spin_once(timeout_sec=0.001)
+        now = time.monotonic()
+        if now - last_send > 0.05:
+            dead = group.check()
+            if dead:
+                names = ", ".join(f"{n.spec.name} (exit {n.process.returncode})" for n in dead)
+                raise ReplayError(f"node process exited during {what}: {names}")
+            resend()
+            last_send = now
+        if now > deadline:
+            raise ReplayError(f"timed out during {what}; acks: {driver.acks}")
+
+
+def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None:
+    label = repr((t_start_ns - 10**9) * 1e-9)
+    _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
+                lambda: (driver.clock_pub.publish(_clock(t_start_ns - 10**9)), driver.send_sync(label)),
+                timeout, "start-up (waiting for every node and connection)")
+
+
+def _tick(driver, executor, group, tick_ns: int, timeout: float) -> None:
+    driver.now_ns = tick_ns
+    driver.clock_pub.publish(_clock(tick_ns))
+    label = repr(tick_ns * 1e-9)
+    _spin_until(driver, executor, group, lambda: driver.quiescent(label),
+                lambda: driver.send_sync(label), timeout, f"tick {label}")
+
+
+def _clock(ns: int) -> Clock:
+    msg = Clock()
+    msg.clock.sec = ns // 1_000_000_000
+    msg.clock.nanosec = ns % 1_000_000_000
+    return msg
+
+
+_last_progress = [0.0]
+
+
+def _progress(done_ns: int, total_ns: int, wall0: float) -> None:
+    now = time.monotonic()
+    if now - _last_progress[0] < 0.5 and done_ns < total_ns:
+        return
+    _last_progress[0] = now
+    frac = min(1.0, done_ns / total_ns) if total_ns > 0 else 1.0
+    bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
+    wall = max(now - wall0, 1e-9)
+    print(f"\r[{bar}] {100 * frac:5.1f}%  bag {done_ns * 1e-9:7.1f}/{total_ns * 1e-9:.1f} s  "
+          f"{done_ns * 1e-9 / wall:5.1f}x real time", end="", file=sys.stderr, flush=True)
+
+
+def print_stats(stats: ReplayStats, out=sys.stdout) -> None:
+    print(f"{'topic':32s} {'read':>9s} {'processed':>10s}", file=out)
+    for topic in sorted(stats.read):
+        print(f"{topic:32s} {stats.read[topic]:9d} {stats.processed.get(topic, 0):10d}", file=out)
+    rate = stats.bag_s / stats.wall_s if stats.wall_s > 0 else math.nan
+    print(f"replayed {stats.bag_s:.1f} s of bag in {stats.wall_s:.1f} s ({rate:.1f}x real time), "
+          f"{stats.ticks} ticks; lossless: {stats.lossless}", file=out)

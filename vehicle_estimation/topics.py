@@ -1,0 +1,49 @@
+"""The topic contract: names (all relative, so namespaces and remapping apply) and joint names.
+
+See the README's "Topic contract" table for types, fields, units, frames and rates.
+"""
+
+# Inputs (sensor-data QoS)
+IMU = "imu/data"                      # sensor_msgs/Imu, body frame (x fwd, y left, z up)
+GNSS = "gnss/fix"                     # sensor_msgs/NavSatFix, WGS84
+SPEED = "vehicle/speed"               # geometry_msgs/TwistWithCovarianceStamped, twist.twist.linear.x
+JOINT_STATES = "vehicle/joint_states"  # sensor_msgs/JointState, wheels + steering wheel
+POWERTRAIN = "vehicle/powertrain"     # sensor_msgs/JointState, engine, load, gear, drive
+
+INPUT_TOPICS = (IMU, GNSS, SPEED, JOINT_STATES, POWERTRAIN)
+
+# Outputs (reliable, keep-last)
+ODOMETRY = "estimation/odometry"              # nav_msgs/Odometry
+IMU_COMPENSATED = "estimation/imu"            # sensor_msgs/Imu, bias-compensated + orientation
+ROAD_SLOPE = "estimation/road_slope"          # std_msgs/Float64 [rad], positive uphill
+ROAD_SLOPE_STAMPED = "estimation/road_slope_stamped"  # geometry_msgs/Vector3Stamped: x value, y variance, z converged
+VEHICLE_STATE = "estimation/vehicle_state"    # geometry_msgs/TwistWithCovarianceStamped
+SIDESLIP = "estimation/sideslip"              # std_msgs/Float64 [rad]
+SIDESLIP_STAMPED = "estimation/sideslip_stamped"  # geometry_msgs/Vector3Stamped
+FUSION_GRADE = "estimation/fusion/road_grade"  # geometry_msgs/Vector3Stamped, pitch-derived grade
+MASS = "estimation/mass"                      # std_msgs/Float64 [kg]
+MASS_STAMPED = "estimation/mass_stamped"      # geometry_msgs/Vector3Stamped: x value, y variance, z converged
+DIAGNOSTICS = "/diagnostics"                  # diagnostic_msgs/DiagnosticArray
+
+# Ground truth, in simulated bags
+GT_MASS = "ground_truth/mass"                 # std_msgs/Float64 [kg]
+GT_ROAD_SLOPE = "ground_truth/road_slope"     # std_msgs/Float64 [rad]
+GT_SIDESLIP = "ground_truth/sideslip"         # std_msgs/Float64 [rad]
+GT_VEHICLE_STATE = "ground_truth/vehicle_state"  # geometry_msgs/TwistWithCovarianceStamped
+GT_ODOMETRY = "ground_truth/odometry"         # nav_msgs/Odometry
+
+GROUND_TRUTH_TOPICS = (GT_MASS, GT_ROAD_SLOPE, GT_SIDESLIP, GT_VEHICLE_STATE, GT_ODOMETRY)
+
+# Joint names
+WHEEL_JOINTS = ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr")
+STEERING_JOINT = "steering_wheel"
+ENGINE_JOINT = "engine"
+ENGINE_LOAD_JOINT = "engine_load"
+GEAR_JOINT = "gear"
+DRIVE_JOINT = "drive"
+
+# Frames (REP-105)
+ODOM_FRAME = "odom"
+BASE_FRAME = "base_link"
+IMU_FRAME = "imu_link"
+GNSS_FRAME = "gnss_link"
