@@ -39,7 +39,6 @@ setup(
     maintainer_email="vehicle-estimation@users.noreply.github.com",
     description="Online estimation of vehicle mass, road slope and motion state from IMU, GNSS and CAN/OBD-II.",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [f"{name} = {target}" for name, target in NODES.items()]
         + ["vehicle-estimation = vehicle_estimation.cli:main"],

@@ -36,7 +36,7 @@ an IMU-variance test only.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -55,7 +55,7 @@ STATUS_RUNNING = "running"
 
 def _vec3(x) -> np.ndarray | None:
     try:
-        a = np.asarray(x, dtype=float).reshape(3)
+        a = np.array(x, dtype=float).reshape(3)   # copy: never keep a reference to the caller's buffer
     except (TypeError, ValueError):
         return None
     if not math.isfinite(a[0] + a[1] + a[2]):      # NaN/inf propagate through the sum
@@ -118,8 +118,8 @@ class FusionConfig:
     # A CAN speed of 0 is only trusted while the IMU agrees (quantised / low-rate CAN
     # reads 0 for a while after the car starts to roll): low-passed gravity-free
     # acceleration and angular rate below these limits (not in the paper).
-    stationary_max_accel: float = 0.3            # [m/s^2]
-    stationary_max_rate: float = 0.05            # [rad/s]
+    stationary_max_accel: float = 0.15           # [m/s^2]
+    stationary_max_rate: float = 0.03            # [rad/s]
     stationary_imu_tau_s: float = 0.1            # low-pass time constant
     speed_timeout_s: float = 0.5             # CAN speed older than this -> stationarity unknown
     speed_unsigned: bool = False             # CAN speed is |v_x| (sign taken from the estimate)

@@ -1,0 +1,84 @@
+"""End to end: a short simulated drive through the launcher's replay, twice; outputs vs truth."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
+
+COMPARED_PREFIX = "/estimation/"
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory) -> Path:
+    bag = tmp_path_factory.mktemp("e2e") / "drive"
+    write_bag(simulate(scenario_by_name("short")), bag)
+    return bag
+
+
+def _replay(bag: Path, out: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(bag),
+                           "--record", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=600)
+
+
+def _estimates(bag: Path) -> dict[str, list[bytes]]:
+    out: dict[str, list[bytes]] = {}
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for conn, _, data in reader.messages():
+            if conn.topic.startswith(COMPARED_PREFIX):
+                out.setdefault(conn.topic, []).append(bytes(data))
+    return out
+
+
+@pytest.fixture(scope="module")
+def replays(drive, tmp_path_factory):
+    results = []
+    for i in range(2):
+        out = tmp_path_factory.mktemp(f"replay{i}") / "estimates"
+        proc = _replay(drive, out)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        results.append((out, proc.stdout))
+    return results
+
+
+def test_replay_is_lossless(replays):
+    _, stdout = replays[0]
+    rows = [line.split() for line in stdout.splitlines() if line.startswith("/")]
+    assert rows, stdout
+    for topic, read, processed in rows:
+        assert int(read) > 0 and read == processed, f"{topic}: read {read}, processed {processed}"
+    assert "lossless: True" in stdout
+
+
+def test_replaying_twice_gives_identical_estimates(replays):
+    first, second = (_estimates(out) for out, _ in replays)
+    expected = {"/estimation/odometry", "/estimation/imu", "/estimation/road_slope",
+                "/estimation/vehicle_state", "/estimation/sideslip", "/estimation/mass",
+                "/estimation/mass_stamped", "/estimation/road_slope_stamped"}
+    assert expected <= set(first), sorted(first)
+    assert first.keys() == second.keys()
+    for topic in first:
+        assert len(first[topic]) == len(second[topic]), topic
+        assert first[topic] == second[topic], f"{topic} differs between two replays"
+
+
+def test_estimates_track_ground_truth(replays, tmp_path):
+    out, _ = replays[0]
+    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "report", str(out),
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["fusion"]["speed"]["rmse"] < 0.2
+    assert report["slope"]["rmse_deg"] < 1.0
+    assert report["vehicle_state"]["vx"]["mae"] < 0.5
+    assert report["vehicle_state"]["yaw_rate"]["mae"] < 0.02
+    assert 500.0 < report["mass"]["estimate_last"] < 5000.0
+    assert list(tmp_path.glob("*.png"))

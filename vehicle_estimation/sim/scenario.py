@@ -1,0 +1,189 @@
+"""Scenario and sensor configuration, the named scenarios, and ``params_path``."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Callable, Optional
+
+from ..vehicle import VehicleParams, load_vehicle_params
+from .profiles import SpeedProfile
+from .road import RoadSpec
+
+
+def params_path(name: str) -> Path:
+    """Path of ``params/<name>.yaml`` (``name`` with or without ``.yaml``).
+
+    Looks in ``<sys.prefix>/share/vehicle_estimation/params/`` (installed package) and then in
+    ``<repo>/params/`` (source checkout). An existing path is returned unchanged.
+    """
+    p = Path(name)
+    if p.suffix in (".yaml", ".yml") and p.is_file():
+        return p
+    fname = name if name.endswith((".yaml", ".yml")) else f"{name}.yaml"
+    candidates = [
+        Path(sys.prefix) / "share" / "vehicle_estimation" / "params" / fname,
+        Path(__file__).resolve().parents[2] / "params" / fname,
+    ]
+    for c in candidates:
+        if c.is_file():
+            return c
+    raise FileNotFoundError(f"params file {fname!r} not found in " + ", ".join(str(c.parent) for c in candidates))
+
+
+def load_vehicle(name: str) -> VehicleParams:
+    return load_vehicle_params(params_path(name))
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+    """Rates [Hz], noise (1-sigma, SI), biases and faults of the simulated sensors."""
+
+    # IMU (body frame imu_link, specific force incl. gravity, angular rate)
+    imu_rate: float = 200.0
+    accel_noise: float = 0.05                 # white noise per sample [m/s²]
+    gyro_noise: float = 0.002                 # white noise per sample [rad/s]
+    accel_bias_rw: float = 2e-4               # bias random walk [m/s²/√s]
+    gyro_bias_rw: float = 2e-5                # bias random walk [rad/s/√s]
+    accel_bias: Optional[tuple[float, float, float]] = None   # turn-on bias; None: drawn (seeded)
+    gyro_bias: Optional[tuple[float, float, float]] = None
+    accel_bias_std: float = 0.05              # std of the drawn turn-on bias [m/s²]
+    gyro_bias_std: float = 0.002              # [rad/s]
+    imu_misalignment_deg: tuple[float, float, float] = (0.4, -0.5, 0.3)  # roll, pitch, yaw of imu_link in base_link
+    # GNSS (antenna at base_link)
+    gnss_rate: float = 10.0
+    gnss_noise: tuple[float, float, float] = (1.5, 1.5, 3.0)  # E, N, U [m]
+    gnss_noise_tau: float = 0.0               # >0: first-order Gauss-Markov correlation time [s]
+    gnss_outages: tuple[tuple[float, float], ...] = ()        # (start, end) [s since sim start]
+    gnss_outage_mode: str = "nofix"           # "nofix": status -1 and NaN position; "drop": no messages
+    # CAN / OBD-II
+    speed_rate: float = 100.0                 # vehicle/speed
+    joint_states_rate: float = 100.0          # vehicle/joint_states
+    powertrain_rate: float = 100.0            # vehicle/powertrain
+    speed_noise: float = 0.0                  # before quantisation [m/s]
+    speed_quantum_kmh: float = 1.0            # OBD-II PID 0D resolution
+    wheel_speed_noise: float = 0.02           # [rad/s]
+    steering_noise: float = 0.002             # steering-wheel angle [rad]
+    engine_speed_noise: float = 0.0           # [rad/s]
+    engine_torque_noise: float = 2.0          # [N m] (also on the drive force, scaled)
+    brake_torque_noise: float = 0.0           # [N m]
+    # paper 004 Eq. 34: variance multipliers 9, 1, 4, 0.25 over 40 s segments on IMU ax, ay, r
+    eq34_noise: bool = False
+    eq34_multipliers: tuple[float, ...] = (9.0, 1.0, 4.0, 0.25)
+    eq34_segment_s: float = 40.0
+    # paper 002 outliers on IMU ay and yaw rate
+    outliers: bool = False
+    outlier_isolated_rate: float = 0.005      # probability per sample
+    outlier_burst_rate: float = 0.02          # bursts per second
+    outlier_burst_len: tuple[int, int] = (3, 12)   # samples
+    outlier_magnitude_ay: float = 3.0         # [m/s²], random sign, times U(0.7, 1.5)
+    outlier_magnitude_r: float = 0.15         # [rad/s]
+    # vehicle body motion seen by the IMU
+    suspension_pitch_gain: float = 0.002      # pitch [rad] per m/s² of deceleration (nose down when braking)
+    suspension_roll_gain: float = 0.0         # roll [rad] per m/s² of lateral acceleration
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """Everything that defines one simulated drive. Vary it with ``dataclasses.replace``."""
+
+    name: str = "custom"
+    vehicle: VehicleParams = dataclasses.field(default_factory=VehicleParams)
+    duration_s: float = 60.0
+    speed_profile: SpeedProfile = dataclasses.field(default_factory=SpeedProfile)
+    road: RoadSpec = dataclasses.field(default_factory=RoadSpec)
+    wind_enu: tuple[float, float, float] = (0.0, 0.0, 0.0)   # air velocity [m/s] (E, N, U)
+    seed: int = 0
+    sensors: SensorConfig = dataclasses.field(default_factory=SensorConfig)
+    initial_speed: float = 0.0          # [m/s]; > 0 starts moving (no standstill)
+    standstill_s: float = 10.0          # standstill at the start [s] (when initial_speed == 0)
+    origin_lat: float = 55.78
+    origin_lon: float = 12.52
+    origin_alt: float = 50.0
+    physics_rate: float = 500.0         # fixed-step integration rate [Hz]
+
+
+def default_scenario(**overrides) -> Scenario:
+    """Sedan (paper 004), 620 s: 10 s standstill, then urban/country/highway/country/urban
+    on a hilly (|grade| <= 6 %), curvy road, ending at standstill."""
+    scn = Scenario(
+        name="default",
+        vehicle=load_vehicle("sedan_d_class"),
+        duration_s=620.0,
+        speed_profile=SpeedProfile(kind="route"),
+        road=RoadSpec(kind="random", grade_max=0.06),
+        seed=1,
+    )
+    return dataclasses.replace(scn, **overrides)
+
+
+def _short() -> Scenario:
+    return Scenario(
+        name="short",
+        vehicle=load_vehicle("sedan_d_class"),
+        duration_s=60.0,
+        speed_profile=SpeedProfile(kind="points", points=((0, 0), (10, 16.7), (32, 16.7), (40, 13.0),
+                                                         (44, 13.0), (49, 0.0), (50, 0.0))),
+        road=RoadSpec(kind="random", grade_max=0.05, hill_wavelengths=(600.0, 300.0)),
+        seed=2,
+    )
+
+
+def _paper004_loop() -> Scenario:
+    return Scenario(
+        name="paper004_loop",
+        vehicle=load_vehicle("sedan_d_class"),
+        duration_s=320.0,
+        speed_profile=SpeedProfile(kind="distance"),
+        road=RoadSpec(kind="loop004", grade_max=0.05),
+        seed=4,
+        initial_speed=80.0 / 3.6,
+        standstill_s=0.0,
+        sensors=SensorConfig(eq34_noise=True),
+    )
+
+
+def _truck_hwfet() -> Scenario:
+    return Scenario(
+        name="truck_hwfet",
+        vehicle=load_vehicle("heavy_truck"),
+        duration_s=790.0,
+        speed_profile=SpeedProfile(kind="cycle", cycle="hwfet"),
+        road=RoadSpec(kind="random", grade_max=0.03, lat_acc=1.5),
+        seed=5,
+    )
+
+
+def _cycle(cycle: str, duration: float, vehicle: str = "sedan_d_class", seed: int = 6) -> Callable[[], Scenario]:
+    def make() -> Scenario:
+        return Scenario(
+            name=f"{vehicle.split('_')[0]}_{cycle}",
+            vehicle=load_vehicle(vehicle),
+            duration_s=duration,
+            speed_profile=SpeedProfile(kind="cycle", cycle=cycle),
+            road=RoadSpec(kind="random", grade_max=0.05),
+            seed=seed,
+        )
+    return make
+
+
+SCENARIOS: dict[str, Callable[[], Scenario]] = {
+    "default": default_scenario,
+    "short": _short,
+    "paper004_loop": _paper004_loop,
+    "truck_hwfet": _truck_hwfet,
+    "sedan_wltc3": _cycle("wltc3", 1815.0),
+    "sedan_hwfet": _cycle("hwfet", 780.0),
+    "sedan_udds": _cycle("udds", 1385.0),
+    "sedan_us06": _cycle("us06", 615.0),
+    "audi_wltc3": _cycle("wltc3", 1815.0, "audi_a4", 7),
+}
+
+
+def scenario_by_name(name: str) -> Scenario:
+    try:
+        factory = SCENARIOS[name]
+    except KeyError:
+        raise ValueError(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}") from None
+    return factory()
