@@ -170,6 +170,7 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
     clutch = vx > 0
     J = Jw + (Ie * Gs[gear - 1] ** 2 if clutch else 0.0)
     theta = grade_l[0]
+    Tb_hold = 4 * 0.3 * Tb_max if vx <= 0.0 else 0.0
 
     # ---- output buffers
     F = {k: [0.0] * n_fast for k in ("vx", "vy", "r", "ax", "ay", "vxd", "vyd", "X", "Y", "Z", "psi", "theta")}
@@ -211,7 +212,9 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
         tx, ty = rx_l[j] - X, ry_l[j] - Y
         alpha = atan2(ty, tx) - psi
         alpha = (alpha + math.pi) % (2 * math.pi) - math.pi
-        d_cmd = atan(2.0 * L * sin(alpha) / max(math.hypot(tx, ty), 1.0))
+        kap_cmd = 2.0 * sin(alpha) / max(math.hypot(tx, ty), 1.0)
+        # pure pursuit + yaw-rate feedback (damps weaving, needed for oversteering vehicles)
+        d_cmd = atan(L * kap_cmd) + 1.5 * L * (vx * kap_cmd - r) / max(vx, 5.0)
         d_cmd = max(-delta_max, min(delta_max, d_cmd))
 
         # speed reference
@@ -232,7 +235,7 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
 
         t_since_shift += dtc
         Tb_total = 0.0
-        if coast or (v_cmd < 0.05 and v_target < 0.05 and vx < 0.8):
+        if coast or (v_cmd < 0.05 and v_target < 0.05 and vx < 0.3):
             # coast: neutral, no brake. stop/hold: brakes, clutch open, first gear
             throttle = 0.0
             clutch = False
@@ -242,7 +245,9 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
             integ = 0.0
             shift_left = 0.0
             if not coast:
-                Tb_total = 4 * 0.3 * Tb_max if vx < 0.05 else 4 * 0.12 * Tb_max
+                # ramp the brake from its current level to the hold torque (no stop jerk)
+                Tb_hold = min(Tb_hold + 4 * 0.3 * Tb_max * dtc, 4 * 0.3 * Tb_max)
+                Tb_total = Tb_hold
                 gear = 1
             else:
                 for gg in range(ngear, 0, -1):   # keep a sensible gear for re-engagement
@@ -260,9 +265,14 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
             thr_est = min(1.0, max(0.0, throttle))
             w_up = wi + (0.30 + 0.45 * thr_est) * (wm - wi)
             w_dn = wi + (0.06 + 0.25 * thr_est) * (wm - wi)
-            if shift_left <= 0.0 and t_since_shift > min_shift_interval:
+            if shift_left <= 0.0 and (t_since_shift > min_shift_interval or w_g > 0.97 * wm):
                 if gear < ngear and w_g > w_up and vx * Gs[gear] > 1.1 * w_dn:
-                    gear += 1
+                    # up-shift, skipping gears (at most 3) while the engine stays well above w_dn
+                    g_new = gear + 1
+                    while (g_new < ngear and g_new < gear + 3
+                           and vx * Gs[g_new] > max(1.3 * w_dn, wi + 0.3 * (w_up - wi))):
+                        g_new += 1
+                    gear = g_new
                     t_since_shift = 0.0
                     shift_left = shift_time
                 elif gear > 1 and w_g < w_dn:
@@ -288,11 +298,11 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
                 F_drive = 0.0
                 Te = 0.0
                 w_e = max(wi, w_in)
-                throttle = engine_drag(vp, w_e) / full_load_torque(vp, w_e)
+                throttle = min(1.0, engine_drag(vp, w_e) / max(full_load_torque(vp, w_e), 1.0))
                 load = throttle
             else:
                 w_e = max(w_in, wi * (1.0 + 0.6 * thr_est)) if slipping else w_in
-                Tmax = full_load_torque(vp, w_e)
+                Tmax = max(full_load_torque(vp, w_e), 1.0)
                 Tdrag = engine_drag(vp, w_e)
                 Te_req = F_req / (G * eta)
                 sat = False
@@ -316,11 +326,15 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
                 clutch = not slipping
                 if slipping and Te <= 0.0:
                     w_e = wi
+                if slipping and F_req < F_drive:
+                    # launch clutch open/slipping: decelerate with the brakes only
+                    Tb_total = (F_drive - F_req) * R
                 load = min(1.0, max(0.0, (Te + Tdrag) / Tmax))
                 if not sat:
                     integ += e * dtc
             if Tb_total > 4 * Tb_max:
                 Tb_total = 4 * Tb_max
+            Tb_hold = Tb_total
         J = Jw + (Ie * Gs[gear - 1] ** 2 if clutch else 0.0)
         Tb1 = min(Tb_total * bshare[0], Tb_max)
         Tb2 = min(Tb_total * bshare[1], Tb_max)

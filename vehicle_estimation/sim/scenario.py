@@ -123,8 +123,8 @@ def _short() -> Scenario:
         name="short",
         vehicle=load_vehicle("sedan_d_class"),
         duration_s=60.0,
-        speed_profile=SpeedProfile(kind="points", points=((0, 0), (10, 16.7), (32, 16.7), (40, 13.0),
-                                                         (44, 13.0), (49, 0.0), (50, 0.0))),
+        speed_profile=SpeedProfile(kind="points", points=((0, 0), (10, 16.7), (30, 16.7), (36, 12.0),
+                                                         (40, 12.0), (47, 0.0), (50, 0.0))),
         road=RoadSpec(kind="random", grade_max=0.05, hill_wavelengths=(600.0, 300.0)),
         seed=2,
     )

@@ -105,7 +105,15 @@ def simulate(scenario: Scenario) -> SimResult:
     Y = with_init(fast["Y"], 0.0)
     Z = with_init(fast["Z"], 0.0)
     psi = with_init(fast["psi"], psi0)
-    theta = with_init(fast["theta"], theta0)
+    # road slope on the physics grid from the (smooth) path position; the dynamics hold it
+    # per control tick, which would make the pitch rate staircase-shaped
+    s_slow = slow["s"]
+    if road.closed:
+        s_slow = np.unwrap(s_slow, period=road.length + float(road.s[1] - road.s[0]))
+    s_fast = np.interp(tt, slow["t"], s_slow)
+    if road.closed:
+        s_fast = np.mod(s_fast, road.length + float(road.s[1] - road.s[0]))
+    theta = np.arctan(np.interp(s_fast, road.s, road.grade))
     ax = step_vals(fast["ax"])
     ay = step_vals(fast["ay"])
     vxd = step_vals(fast["vxd"])
