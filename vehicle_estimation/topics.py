@@ -15,6 +15,7 @@ INPUT_TOPICS = (IMU, GNSS, SPEED, JOINT_STATES, POWERTRAIN)
 # Outputs (reliable, keep-last)
 ODOMETRY = "estimation/odometry"              # nav_msgs/Odometry
 IMU_COMPENSATED = "estimation/imu"            # sensor_msgs/Imu, bias-compensated + orientation
+IMU_BIAS = "estimation/imu_bias"              # sensor_msgs/Imu: linear_acceleration = accel bias, angular_velocity = gyro bias
 ROAD_SLOPE = "estimation/road_slope"          # std_msgs/Float64 [rad], positive uphill
 ROAD_SLOPE_STAMPED = "estimation/road_slope_stamped"  # geometry_msgs/Vector3Stamped: x value, y variance, z converged
 VEHICLE_STATE = "estimation/vehicle_state"    # geometry_msgs/TwistWithCovarianceStamped

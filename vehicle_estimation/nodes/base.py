@@ -45,13 +45,17 @@ from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import rclpy
+import rclpy.clock
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Vector3Stamped
+from sensor_msgs.msg import Imu
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.task import Future
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from vehicle_estimation import topics
 from vehicle_estimation.vehicle import VehicleParams
 
 SYNC_TOPIC = "replay/sync"
@@ -241,13 +245,15 @@ class EstimatorNode(Node):
         self.events: deque[str] = deque(maxlen=5)
         self._publishers_by_topic: dict[str, Any] = {}
         self._subscriptions_by_topic: dict[str, Any] = {}
-        self._queue: list[tuple[float, int, Callable[[float, Any], None], Any, str]] = []
+        self._queue: list[tuple[float, str, int, Callable[[float, Any], None], Any]] = []
         self._seq = itertools.count()
         self._released_until = -math.inf
         self._last_primary_stamp = -math.inf
         self._missing: set[str] = set()
         self._pending_sync: DiagnosticStatus | None = None
+        self._last_sync: DiagnosticStatus | None = None
         self._last_sync_time = -math.inf
+        self._reack_timer = None
         self.resets = 0
 
         self.input_depth = self.declare_int(
@@ -274,6 +280,11 @@ class EstimatorNode(Node):
         if self.sync_enabled:
             self._ack_pub = self.create_publisher(DiagnosticStatus, ACK_TOPIC, replay_qos())
             self.create_subscription(DiagnosticStatus, SYNC_TOPIC, self._on_sync, replay_qos())
+            # Messages that arrive after an ack (estimates of other nodes) are acknowledged
+            # again, coalesced over 1 ms of steady (wall) time, so the player never polls.
+            self._reack_timer = self.create_timer(
+                0.001, self._reack, clock=rclpy.clock.Clock(clock_type=rclpy.clock.ClockType.STEADY_TIME))
+            self._reack_timer.cancel()
 
     # ------------------------------------------------------------------ parameters
     def _declare(self, name: str, default: Any, descriptor: ParameterDescriptor) -> Any:
@@ -361,7 +372,9 @@ class EstimatorNode(Node):
             if not math.isfinite(t) or t <= 0.0:
                 self.reject(f"{name}:bad_stamp")
                 return
-            heapq.heappush(self._queue, (t, next(self._seq), handler, msg, name))
+            # Ties on the stamp are broken by topic name, then arrival order within the topic
+            # (FIFO per topic), never by arrival order across topics: that is not reproducible.
+            heapq.heappush(self._queue, (t, name, next(self._seq), handler, msg))
             self._release_available()
 
         sub = self.create_subscription(msg_type, topic, on_message, sensor_qos(self.input_depth))
@@ -369,6 +382,10 @@ class EstimatorNode(Node):
         self._rx[sub.topic_name] += 0
         self._subscriptions_by_topic[sub.topic_name] = sub
         return sub
+
+    def subscribe_imu_bias(self, bias: "FusionImuBias") -> Any:
+        """Subscribe the fusion node's IMU bias estimate (see :class:`FusionImuBias`)."""
+        return self.subscribe_upstream(Imu, topics.IMU_BIAS, bias.history, bias.convert)
 
     def subscribe_upstream(self, msg_type: Any, topic: str, history: UpstreamHistory,
                            convert: Callable[[Any], tuple[float, Any] | None]) -> Any:
@@ -378,6 +395,7 @@ class EstimatorNode(Node):
         def on_message(msg: Any) -> None:
             name = holder["topic"]
             self._rx[name] += 1
+            self._schedule_reack()
             try:
                 item = convert(msg)
             except Exception:
@@ -402,7 +420,7 @@ class EstimatorNode(Node):
 
     def _release(self, horizon: float) -> None:
         while self._queue and self._queue[0][0] < horizon:
-            t, _, handler, msg, topic = heapq.heappop(self._queue)
+            t, topic, _, handler, msg = heapq.heappop(self._queue)
             if t < self._last_primary_stamp - self.time_jump_reset_s:
                 self.note_event(
                     f"time jumped back {self._last_primary_stamp - t:.3f} s on {topic}: "
@@ -442,14 +460,29 @@ class EstimatorNode(Node):
         self._last_sync_time = tick
         self._release(tick - self.release_delay)
         self._pending_sync = None
+        self._last_sync = msg
+        self._send_ack()
+
+    def _schedule_reack(self) -> None:
+        if self._reack_timer is not None and self._last_sync is not None and self._reack_timer.is_canceled():
+            self._reack_timer.reset()
+
+    def _reack(self) -> None:
+        self._reack_timer.cancel()
+        if self._pending_sync is None and self._last_sync is not None:
+            self._send_ack()
+
+    def _send_ack(self) -> None:
+        msg = self._last_sync
         ack = DiagnosticStatus(name=self.get_fully_qualified_name(), message=msg.message)
         ack.values = [KeyValue(key=RX_PREFIX + k, value=str(v)) for k, v in self._rx.items()]
         ack.values += [KeyValue(key=TX_PREFIX + k, value=str(self._tx[k]))
                        for k in self._publishers_by_topic]
-        ack.values += [KeyValue(key=MATCHED_PREFIX + k, value=str(p.get_subscription_count()))
-                       for k, p in self._publishers_by_topic.items()]
-        ack.values += [KeyValue(key=SOURCES_PREFIX + k, value=str(s.get_publisher_count()))
-                       for k, s in self._subscriptions_by_topic.items()]
+        if msg.level != DiagnosticStatus.OK:  # the player asks for connection state at start-up
+            ack.values += [KeyValue(key=MATCHED_PREFIX + k, value=str(p.get_subscription_count()))
+                           for k, p in self._publishers_by_topic.items()]
+            ack.values += [KeyValue(key=SOURCES_PREFIX + k, value=str(s.get_publisher_count()))
+                           for k, s in self._subscriptions_by_topic.items()]
         self._ack_pub.publish(ack)
 
     # ------------------------------------------------------------------ bookkeeping
@@ -519,6 +552,23 @@ def companion_value(msg: Vector3Stamped) -> tuple[float, StampedValue] | None:
     return t, StampedValue(t, v.x, v.y, v.z > 0.5)
 
 
+def make_executor():
+    """The C++ events executor of rclpy (Jazzy: ``rclpy.experimental``) when present.
+
+    It dispatches callbacks without rebuilding a wait set in Python for every message, which
+    cuts the per-message overhead several-fold; the plain single-threaded executor is the
+    fallback. ``VEHICLE_ESTIMATION_EXECUTOR=single_threaded`` forces the fallback.
+    """
+    import os
+    if os.environ.get("VEHICLE_ESTIMATION_EXECUTOR", "events") == "events":
+        try:
+            from rclpy.experimental import EventsExecutor
+            return EventsExecutor()
+        except ImportError:
+            pass
+    return SingleThreadedExecutor()
+
+
 def run_node(node_factory: Callable[[], EstimatorNode], args: list[str] | None = None) -> int:
     """Entry point shared by the node executables: clear errors, clean shutdown."""
     rclpy.init(args=args if args is not None else sys.argv)
@@ -529,10 +579,14 @@ def run_node(node_factory: Callable[[], EstimatorNode], args: list[str] | None =
         print(f"[vehicle_estimation] invalid parameter: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
-    executor = SingleThreadedExecutor()
+    executor = make_executor()
     executor.add_node(node)
+    never = Future()
     try:
-        executor.spin()
+        # spin_until_future_complete in slices rather than spin(): the events executor's
+        # spin() busy-waits in this rclpy release, and slices let us notice a shutdown.
+        while rclpy.ok():
+            executor.spin_until_future_complete(never, timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -545,50 +599,35 @@ def run_node(node_factory: Callable[[], EstimatorNode], args: list[str] | None =
 class FusionImuBias:
     """Bias correction of raw IMU samples with the fusion node's estimate.
 
-    The fusion node publishes every IMU sample bias-compensated on ``estimation/imu`` with the
-    raw sample's stamp. The bias is the difference between a raw sample and its compensated
-    twin of the same stamp; it changes slowly, so the newest known difference corrects the
-    samples that follow. Without fusion (not started, not initialised) samples pass through
-    uncorrected and :attr:`valid` is False.
+    The fusion node publishes its accelerometer and gyro bias estimates on
+    ``estimation/imu_bias`` (sensor_msgs/Imu: ``linear_acceleration`` = accelerometer bias,
+    ``angular_velocity`` = gyro bias, body frame, with their covariances) at a low rate: a bias
+    changes over minutes, so 10 Hz is plenty and costs downstream nodes almost nothing.
+    Without fusion (not started, not yet initialised) samples pass through uncorrected and
+    :attr:`valid` is False.
     """
 
-    def __init__(self, lag_s: float = 0.0, window: int = 400) -> None:
-        self.history = UpstreamHistory(lag_s=lag_s, horizon_s=2.0)
-        self._raw: dict[float, tuple[Any, Any]] = {}
-        self._order: deque[float] = deque()
-        self._window = window
-        self.accel = None
-        self.gyro = None
+    def __init__(self) -> None:
+        self.history = UpstreamHistory(horizon_s=5.0)
+        self.valid = False
 
-    @property
-    def valid(self) -> bool:
-        return self.accel is not None
-
-    def convert(self, msg: Any) -> tuple[float, Any] | None:
+    @staticmethod
+    def convert(msg: Any) -> tuple[float, Any] | None:
         import numpy as np
         t = stamp_to_sec(msg.header.stamp)
-        fc = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
-        wc = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
-        if not (np.all(np.isfinite(fc)) and np.all(np.isfinite(wc))):
+        ba = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+        bg = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+        if not (np.all(np.isfinite(ba)) and np.all(np.isfinite(bg))):
             return None
-        return t, (t, fc, wc)
+        return t, (ba, bg)
 
     def correct(self, t: float, f: Any, w: Any) -> tuple[Any, Any]:
-        self._raw[t] = (f, w)
-        self._order.append(t)
-        while len(self._order) > self._window:
-            self._raw.pop(self._order.popleft(), None)
         entry = self.history.at(t)
-        if entry is not None and entry[0] in self._raw:
-            raw_f, raw_w = self._raw[entry[0]]
-            self.accel = raw_f - entry[1]
-            self.gyro = raw_w - entry[2]
-        if self.accel is None:
+        self.valid = entry is not None
+        if entry is None:
             return f, w
-        return f - self.accel, w - self.gyro
+        return f - entry[0], w - entry[1]
 
     def clear(self) -> None:
         self.history.clear()
-        self._raw.clear()
-        self._order.clear()
-        self.accel = self.gyro = None
+        self.valid = False

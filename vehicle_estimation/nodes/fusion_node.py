@@ -64,6 +64,10 @@ class FusionNode(EstimatorNode):
         self.pub_odom = self.publisher(Odometry, topics.ODOMETRY)
         self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
         self.pub_grade = self.publisher(Vector3Stamped, FUSION_GRADE)
+        self.pub_bias = self.publisher(Imu, topics.IMU_BIAS)
+        self.bias_rate = self.declare_float(
+            "bias_rate_hz", 10.0, "Rate of estimation/imu_bias [Hz]", 0.1, 1000.0)
+        self._last_bias_t = -math.inf
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
@@ -90,6 +94,9 @@ class FusionNode(EstimatorNode):
         if t - self._last_odom_t >= 1.0 / self.odometry_rate - 1e-9:
             self._last_odom_t = t
             self.publish_odometry(t)
+        if t - self._last_bias_t >= 1.0 / self.bias_rate - 1e-9:
+            self._last_bias_t = t
+            self.publish_bias(msg)
 
     def on_gnss(self, t: float, msg: NavSatFix) -> None:
         if msg.status.status < NavSatStatus.STATUS_FIX:
@@ -137,6 +144,20 @@ class FusionNode(EstimatorNode):
         out.angular_velocity_covariance = list(raw.angular_velocity_covariance)
         self.publish(self.pub_imu, out)
 
+    def publish_bias(self, raw: Imu) -> None:
+        """The IMU bias estimate in sensor_msgs/Imu form (see nodes.base.FusionImuBias)."""
+        ekf = self.ekf
+        out = Imu()
+        out.header.stamp = raw.header.stamp
+        out.header.frame_id = self.base_frame
+        out.orientation_covariance[0] = -1.0
+        a, w = out.linear_acceleration, out.angular_velocity
+        a.x, a.y, a.z = (float(v) for v in ekf.accel_bias)
+        w.x, w.y, w.z = (float(v) for v in ekf.gyro_bias)
+        out.linear_acceleration_covariance = _flat3(ekf.accel_bias_covariance)
+        out.angular_velocity_covariance = _flat3(ekf.gyro_bias_covariance)
+        self.publish(self.pub_bias, out)
+
     def publish_odometry(self, t: float) -> None:
         ekf = self.ekf
         p, v_body, q = ekf.position_enu, ekf.velocity_body, ekf.quaternion
@@ -174,6 +195,7 @@ class FusionNode(EstimatorNode):
     def reset_estimators(self) -> None:
         self.ekf.reset()
         self._last_odom_t = -math.inf
+        self._last_bias_t = -math.inf
 
     def status_values(self) -> dict[str, str]:
         ekf = self.ekf

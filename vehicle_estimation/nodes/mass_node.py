@@ -98,7 +98,7 @@ class MassNode(EstimatorNode):
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
-        self.subscribe_upstream(Imu, topics.IMU_COMPENSATED, self.bias.history, self.bias.convert)
+        self.subscribe_imu_bias(self.bias)
         self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, _odom_speed)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
 

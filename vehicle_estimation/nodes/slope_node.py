@@ -55,12 +55,15 @@ class SlopeNode(EstimatorNode):
         self.pub = self.publisher(Float64, topics.ROAD_SLOPE)
         self.pub_stamped = self.publisher(Vector3Stamped, topics.ROAD_SLOPE_STAMPED)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
-        self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
-        self.subscribe_upstream(Imu, topics.IMU_COMPENSATED, self.bias.history, self.bias.convert)
-        self.subscribe_upstream(Vector3Stamped, topics.FUSION_GRADE, self.grade, companion_value)
-        self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
-                                _twist_speed)
-        self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, _odom_speed)
+        # Subscribe only to what the method uses: every subscription costs CPU at 100-200 Hz.
+        if self.method == "fusion_pitch":
+            self.subscribe_upstream(Vector3Stamped, topics.FUSION_GRADE, self.grade, companion_value)
+        else:
+            self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
+            self.subscribe_imu_bias(self.bias)
+            self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
+                                    _twist_speed)
+            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, _odom_speed)
 
     def _make_core(self):
         cls = slope_core.SLOPE_METHODS[self.method]
@@ -91,7 +94,6 @@ class SlopeNode(EstimatorNode):
         if not all(math.isfinite(x) for x in (*f, *w)):
             self.reject("imu:non_finite")
             return
-        f, w = self.bias.correct(t, f, w)
         if self.method == "fusion_pitch":
             item = self.grade.at(t)
             missing = item is None or t - item.stamp > STALE_AFTER_S
@@ -99,6 +101,7 @@ class SlopeNode(EstimatorNode):
             if not missing and not self.core.step(t, item.value, item.variance):
                 self.reject("slope:rejected_by_core")
         else:
+            f, w = self.bias.correct(t, f, w)
             speed = self.speed_at(t)
             self.set_missing("vehicle speed", speed is None)
             if speed is not None and not self.core.step(t, float(f[0]), speed, yaw_rate=float(w[2])):

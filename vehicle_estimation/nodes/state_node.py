@@ -63,13 +63,17 @@ class StateNode(EstimatorNode):
         self.chassis = None
         self.chassis_t = -math.inf
         self._last_pub = -math.inf
+        self._steer = 0.0
+        self.min_dynamic_speed = self.declare_float(
+            "sideslip_min_speed", 3.0,
+            "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
 
         self.pub_state = self.publisher(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
         self.pub_beta = self.publisher(Float64, topics.SIDESLIP)
         self.pub_beta_stamped = self.publisher(Vector3Stamped, topics.SIDESLIP_STAMPED)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
-        self.subscribe_upstream(Imu, topics.IMU_COMPENSATED, self.bias.history, self.bias.convert)
+        self.subscribe_imu_bias(self.bias)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
         self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
 
@@ -112,6 +116,7 @@ class StateNode(EstimatorNode):
             steer, wheels = 0.0, np.full(4, np.nan)
         if not math.isfinite(steer):
             steer = 0.0
+        self._steer = steer
         inputs = VehicleInputs(
             steer_angle=steer,
             wheel_speeds=wheels,
@@ -145,8 +150,16 @@ class StateNode(EstimatorNode):
             cov[i, i] = 1e6  # not estimated: vz, roll rate, pitch rate
         msg.twist.covariance = [float(c) for c in cov.ravel()]
         self.publish(self.pub_state, msg)
-        beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
-        self.publish(self.pub_beta_stamped, companion(t, beta, beta_var, not self._missing))
+        if abs(x[0]) >= self.min_dynamic_speed:
+            beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
+            converged = not self._missing
+        else:
+            # Below the speed where the tyre model means anything (the core regularises slip
+            # below ~3 m/s) the sideslip is kinematic: no tyre slip, beta = atan(lr tan(delta) / L).
+            beta = math.atan(self.vehicle.lr * math.tan(self._steer) / self.vehicle.wheelbase)
+            beta_var, converged = math.radians(5.0) ** 2, False
+        beta_var = min(beta_var, (math.pi / 2) ** 2) if math.isfinite(beta_var) else (math.pi / 2) ** 2
+        self.publish(self.pub_beta_stamped, companion(t, beta, beta_var, converged))
         self.publish(self.pub_beta, Float64(data=beta))
 
     def reset_estimators(self) -> None:

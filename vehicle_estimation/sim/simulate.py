@@ -284,9 +284,14 @@ def make_sensors(scn: Scenario, cfg: SensorConfig, truth: dict, kin: dict, seeds
     we = truth["engine_speed"][iz] + (rng_can.normal(0, cfg.engine_speed_noise, tp.size) if cfg.engine_speed_noise > 0 else 0.0)
     tq_noise = rng_can.normal(0, cfg.engine_torque_noise, tp.size) if cfg.engine_torque_noise > 0 else np.zeros(tp.size)
     te = truth["engine_torque"][iz]
-    drive = truth["drive_force"][iz]
     gear = truth["gear"][iz]
     G = np.asarray([vp.effective_gearing(int(gg)) for gg in range(1, len(vp.gear_ratios) + 1)])[gear - 1]
+    # The contract's `drive` is the force the driveline delivers to the driven wheels: the
+    # propulsion force eta T_e G of paper 003 Eq. 1 less what accelerates the engine-side
+    # inertia (I_e G^2 a, only while the clutch is closed).
+    clutch = truth["clutch"][iz] > 0.5
+    drive = truth["drive_force"][iz] - np.where(clutch, vp.engine_inertia * G ** 2 * truth["vx_dot"][iz], 0.0)
+    drive = np.where(truth["drive_force"][iz] != 0.0, drive, 0.0)
     transmitting = drive != 0.0
     te_m = te + np.where(transmitting | (te != 0.0), tq_noise, 0.0)
     drive_m = drive + np.where(transmitting, tq_noise * G * vp.driveline_efficiency, 0.0)

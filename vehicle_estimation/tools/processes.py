@@ -39,10 +39,17 @@ class NodeProcess:
     log_path: Path | None = None
 
     def start(self, env: dict[str, str]) -> None:
-        stdout = open(self.log_path, "ab") if self.log_path else None  # noqa: SIM115 (child owns it)
-        self.process = subprocess.Popen(
-            self.argv, env=env, stdout=stdout, stderr=subprocess.STDOUT if stdout else None,
-            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        stdout = None
+        if self.log_path is not None:
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            stdout = open(self.log_path, "ab")  # noqa: SIM115 (closed below; the child keeps its copy)
+        try:
+            self.process = subprocess.Popen(
+                self.argv, env=env, stdout=stdout, stderr=subprocess.STDOUT if stdout else None,
+                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        finally:
+            if stdout is not None:
+                stdout.close()
 
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None

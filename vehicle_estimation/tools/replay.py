@@ -29,7 +29,6 @@ from typing import Any, Iterable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
 from rosbags.highlevel import AnyReader
@@ -40,12 +39,13 @@ from rosgraph_msgs.msg import Clock
 from vehicle_estimation import topics
 from vehicle_estimation.nodes import PIPELINE
 from vehicle_estimation.nodes.base import (
-    ACK_TOPIC, MATCHED_PREFIX, RX_PREFIX, SOURCES_PREFIX, SYNC_TOPIC, TX_PREFIX, replay_qos)
+    ACK_TOPIC, MATCHED_PREFIX, make_executor, RX_PREFIX, SOURCES_PREFIX, SYNC_TOPIC, TX_PREFIX, replay_qos)
 
 #: Estimates recorded to the output bag (relative names, resolved in the node namespace).
 RECORDED_TOPICS = (
     (topics.ODOMETRY, "nav_msgs/msg/Odometry"),
     (topics.IMU_COMPENSATED, "sensor_msgs/msg/Imu"),
+    (topics.IMU_BIAS, "sensor_msgs/msg/Imu"),
     (topics.FUSION_GRADE, "geometry_msgs/msg/Vector3Stamped"),
     (topics.ROAD_SLOPE, "std_msgs/msg/Float64"),
     (topics.ROAD_SLOPE_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
@@ -58,6 +58,9 @@ RECORDED_TOPICS = (
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 
 DEFAULT_TICK_S = 0.1
+#: Nodes acknowledge by themselves whenever their counts change after a sync; a resend is
+#: only a safety net.
+RESEND_S = 0.25
 
 
 class ReplayError(RuntimeError):
@@ -117,6 +120,7 @@ class ReplayDriver(Node):
         self.recorded: Counter[str] = Counter()
         self._rec_connections: dict[str, Any] = {}
         self.now_ns = 0
+        self.dirty = False
         reliable = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
                               history=HistoryPolicy.KEEP_LAST, depth=10000)
         self.reliable = reliable
@@ -143,6 +147,7 @@ class ReplayDriver(Node):
 
     def _on_record(self, topic: str, data: bytes) -> None:
         self.recorded[topic] += 1
+        self.dirty = True
         if self.writer is not None:
             self.writer.write(self._rec_connections[topic], self.now_ns, data)
 
@@ -160,10 +165,13 @@ class ReplayDriver(Node):
                 if kv.key.startswith(prefix):
                     entry[key][kv.key[len(prefix):]] = int(kv.value)
         self.acks[msg.name] = entry
+        self.dirty = True
 
     # ---------------------------------------------------------------- protocol
-    def send_sync(self, tick_label: str) -> None:
-        msg = DiagnosticStatus(name="replay", message=tick_label)
+    def send_sync(self, tick_label: str, handshake: bool = False) -> None:
+        # level WARN asks the nodes to add their connection state (start-up handshake only)
+        msg = DiagnosticStatus(name="replay", message=tick_label,
+                               level=DiagnosticStatus.WARN if handshake else DiagnosticStatus.OK)
         msg.values = [KeyValue(key=TX_PREFIX + pub.topic_name, value=str(self.tx[pub.topic_name]))
                       for pub in self.raw_publishers.values()]
         self.sync_pub.publish(msg)
@@ -236,7 +244,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
         writer.open()
     rclpy.init(args=["--ros-args", "-p", "use_sim_time:=false"])
     driver = ReplayDriver(namespace, [s.name for s in PIPELINE], writer, typestore)
-    executor = SingleThreadedExecutor()
+    executor = make_executor()
     executor.add_node(driver)
     group.start()
     wall0 = time.monotonic()
@@ -300,10 +308,15 @@ def _spin_until(driver, executor, group, predicate, resend, timeout: float, what
     deadline = time.monotonic() + timeout
     last_send = time.monotonic()
     resend()
-    while not predicate():
-        executor.spin_once(timeout_sec=0.001)
+    driver.dirty = True
+    while True:
+        if driver.dirty:
+            driver.dirty = False
+            if predicate():
+                return
+        executor.spin_once(timeout_sec=0.05)
         now = time.monotonic()
-        if now - last_send > 0.05:
+        if now - last_send > RESEND_S:
             dead = group.check()
             if dead:
                 names = ", ".join(f"{n.spec.name} (exit {n.process.returncode})" for n in dead)
@@ -317,7 +330,7 @@ def _spin_until(driver, executor, group, predicate, resend, timeout: float, what
 def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None:
     label = repr((t_start_ns - 10**9) * 1e-9)
     _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
-                lambda: (driver.clock_pub.publish(_clock(t_start_ns - 10**9)), driver.send_sync(label)),
+                lambda: (driver.clock_pub.publish(_clock(t_start_ns - 10**9)), driver.send_sync(label, handshake=True)),
                 timeout, "start-up (waiting for every node and connection)")
 
 
