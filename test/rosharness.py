@@ -76,12 +76,25 @@ class Harness:
                            timeout)
         assert ok, f"node never subscribed to {topics}"
 
-    def publish_stream(self, items: list[tuple[str, Any]], chunk: int = 50) -> None:
-        """Publish (topic, msg) in order, spinning between chunks so no queue overflows."""
-        for i, (topic, msg) in enumerate(items):
-            self.probe.pubs[topic].publish(msg)
-            if i % chunk == chunk - 1:
+    def publish_stream(self, items: list[tuple[str, Any]], chunk: int = 20) -> None:
+        """Publish (topic, msg) in order, a chunk at a time, each chunk received before the next.
+
+        Waiting on the node's receive counters keeps the topics within one chunk of each
+        other, as they are live, instead of letting one topic's backlog starve another.
+        """
+        from collections import Counter
+        sent: Counter[str] = Counter()
+        rx = getattr(self.node, "_rx", None)
+        for start in range(0, len(items), chunk):
+            for topic, msg in items[start:start + chunk]:
+                pub = self.probe.pubs[topic]
+                pub.publish(msg)
+                sent[pub.topic_name] += 1
+            if rx is None:
                 self.spin(0.02)
+            else:
+                ok = self.wait_for(lambda: all(rx[t] >= n for t, n in sent.items()), timeout=10.0)
+                assert ok, f"node received {dict(rx)} of {dict(sent)}"
         self.spin(0.3)
 
     def close(self) -> None:

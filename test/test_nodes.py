@@ -209,7 +209,7 @@ def test_mass_node_recovers_mass_from_drive_force():
                 js.velocity = [math.nan, math.nan]
                 js.effort = [math.nan, drive]
                 stream.append((topics.POWERTRAIN, js))
-        h.publish_stream(stream, chunk=100)
+        h.publish_stream(stream)
         assert h.wait_for(lambda: len(out) > 50)
         assert out[-1].vector.x == pytest.approx(mass_true, rel=0.03)
         assert all(math.isfinite(m.vector.x) and m.vector.y >= 0 for m in out)

@@ -248,7 +248,7 @@ class EstimatorNode(Node):
         self._queue: list[tuple[float, str, int, Callable[[float, Any], None], Any]] = []
         self._seq = itertools.count()
         self._released_until = -math.inf
-        self._last_primary_stamp = -math.inf
+        self._last_stamp_by_topic: dict[str, float] = {}
         self._missing: set[str] = set()
         self._pending_sync: DiagnosticStatus | None = None
         self._last_sync: DiagnosticStatus | None = None
@@ -421,14 +421,18 @@ class EstimatorNode(Node):
     def _release(self, horizon: float) -> None:
         while self._queue and self._queue[0][0] < horizon:
             t, topic, _, handler, msg = heapq.heappop(self._queue)
-            if t < self._last_primary_stamp - self.time_jump_reset_s:
+            # A jump back is judged per topic: a bag played in a loop or a restarted driver makes
+            # a topic's own stamps go backwards, while a topic that is merely processed late
+            # behind a busier one (a backlog in live mode) keeps its own order.
+            last = self._last_stamp_by_topic.get(topic, -math.inf)
+            if t < last - self.time_jump_reset_s:
                 self.note_event(
-                    f"time jumped back {self._last_primary_stamp - t:.3f} s on {topic}: "
+                    f"time jumped back {last - t:.3f} s on {topic}: "
                     "resetting estimators (bag loop or restarted source)")
                 self.resets += 1
-                self._last_primary_stamp = -math.inf
+                self._last_stamp_by_topic.clear()
                 self.reset_estimators()
-            self._last_primary_stamp = max(self._last_primary_stamp, t)
+            self._last_stamp_by_topic[topic] = max(last, t) if t >= last - self.time_jump_reset_s else t
             try:
                 handler(t, msg)
             except Exception:  # never let one bad message take the node down
@@ -455,7 +459,7 @@ class EstimatorNode(Node):
             self.note_event(f"replay clock jumped back to {tick:.3f}: resetting estimators")
             self.resets += 1
             self._queue.clear()
-            self._last_primary_stamp = -math.inf
+            self._last_stamp_by_topic.clear()
             self.reset_estimators()
         self._last_sync_time = tick
         self._release(tick - self.release_delay)

@@ -109,3 +109,14 @@ def imu_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     """Specific force and angular rate of a sensor_msgs/Imu (body frame, REP-145)."""
     a, w = msg.linear_acceleration, msg.angular_velocity
     return np.array([a.x, a.y, a.z], dtype=float), np.array([w.x, w.y, w.z], dtype=float)
+
+
+def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
+    """``(stamp, (stamp, vx))`` of an Odometry or TwistWithCovarianceStamped, for a history.
+
+    Both carry the body-frame forward speed in ``twist.twist.linear.x``.
+    """
+    stamp = msg.header.stamp
+    t = float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+    v = msg.twist.twist.linear.x
+    return (t, (t, v)) if math.isfinite(v) else None

@@ -10,9 +10,9 @@ node keeps publishing its prior with a large variance and says so in ``/diagnost
 Subscribes (sensor-data QoS): ``vehicle/powertrain`` (the trigger), ``vehicle/joint_states``
 (brake torque), ``imu/data`` (longitudinal specific force), ``vehicle/speed`` (fallback speed).
 From other nodes: ``estimation/imu`` (fusion bias), ``estimation/odometry`` (speed),
-``estimation/road_slope_stamped``. The longitudinal acceleration is the bias-compensated
-specific force minus g·sin(slope), smoothed with the 25-sample linearly weighted moving
-average of paper 003 Sec. 7.1.
+``estimation/road_slope_stamped``. The RLS runs at ``update_rate_hz`` (4 Hz, the CAN rate of
+paper 003) on the means of every input over the period (see :class:`UpdateWindow`); the
+longitudinal acceleration is the mean bias-compensated specific force minus g·sin(slope).
 
 Publishes ``estimation/mass`` (std_msgs/Float64, kg) and ``estimation/mass_stamped``
 (geometry_msgs/Vector3Stamped: x = mass, y = variance [kg^2], z = converged 1/0).
@@ -33,28 +33,64 @@ from vehicle_estimation import topics
 from vehicle_estimation.core.mass_rls import LongitudinalMassEstimator, MassRLSConfig
 from vehicle_estimation.nodes.base import (
     EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
-    run_node, stamp_to_sec)
+    run_node)
 from vehicle_estimation.nodes.conversions import (
-    MalformedMessage, chassis_reading, imu_arrays, powertrain_reading)
+    MalformedMessage, chassis_reading, forward_speed_entry, imu_arrays, powertrain_reading)
 
 METHODS = ("rls",)
 STALE_AFTER_S = 1.0
 
 
-class LinearlyWeightedMovingAverage:
-    """LWMA over the last ``n`` samples, newest weighted n, oldest 1 (paper 003 Sec. 7.1)."""
+class UpdateWindow:
+    """Means of the inputs over one RLS update period (paper 003 ran its RLS on 4 Hz CAN data).
 
-    def __init__(self, n: int) -> None:
-        self.values: deque[float] = deque(maxlen=n)
-        self.weights = np.arange(1, n + 1, dtype=float)
+    Averaging the force signals and the IMU acceleration over the *same* window filters both
+    sides of Eq. 4 alike, so a transient cannot appear on one side before the other, and it
+    keeps the forgetting factor's memory in seconds what the paper's was (lambda = 0.9995 at
+    4 Hz: about 500 s). Brake torque takes the maximum (one braking sample spoils the window),
+    the gear the last value, and a gear change inside the window is passed on as NaN so the
+    core treats the window as a shift.
+    """
 
-    def add(self, x: float) -> float:
-        self.values.append(x)
-        w = self.weights[-len(self.values):]
-        return float(np.dot(w, self.values) / w.sum())
+    FIELDS = ("vx", "slope", "drive_force", "engine_torque", "engine_speed", "engine_load")
+
+    def __init__(self) -> None:
+        self.clear()
 
     def clear(self) -> None:
-        self.values.clear()
+        self.start = math.nan
+        self.sums = dict.fromkeys(self.FIELDS, 0.0)
+        self.counts = dict.fromkeys(self.FIELDS, 0)
+        self.accel_sum = 0.0
+        self.accel_n = 0
+        self.brake = 0.0
+        self.gears: set[float] = set()
+
+    def add_accel(self, ax_specific: float) -> None:
+        self.accel_sum += ax_specific
+        self.accel_n += 1
+
+    def add(self, t: float, brake: float, gear: float, **values: float) -> None:
+        if math.isnan(self.start):
+            self.start = t
+        for key, value in values.items():
+            if math.isfinite(value):
+                self.sums[key] += value
+                self.counts[key] += 1
+        self.brake = max(self.brake, brake)
+        if math.isfinite(gear):
+            self.gears.add(gear)
+
+    def mean(self, key: str) -> float:
+        return self.sums[key] / self.counts[key] if self.counts[key] else math.nan
+
+    @property
+    def accel(self) -> float:
+        return self.accel_sum / self.accel_n if self.accel_n else math.nan
+
+    @property
+    def gear(self) -> float:
+        return next(iter(self.gears)) if len(self.gears) == 1 else math.nan
 
 
 class MassNode(EstimatorNode):
@@ -63,8 +99,9 @@ class MassNode(EstimatorNode):
         self.vehicle = self.declare_vehicle()
         self.method = self.declare_str("method", "rls", "Mass estimation method", METHODS)
         self.rate = self.declare_float("publish_rate_hz", 10.0, "Output rate [Hz]", 0.1, 1000.0)
-        self.accel_window = self.declare_int(
-            "accel_filter_samples", 25, "LWMA length on the IMU acceleration (paper 003: 25)", 1, 1000)
+        self.update_rate = self.declare_float(
+            "update_rate_hz", 4.0,
+            "RLS update rate; inputs are averaged over each period (paper 003: 4 Hz CAN)", 0.1, 1000.0)
         defaults = MassRLSConfig()
         overrides = {}
         for name, value in vars(defaults).items():
@@ -83,8 +120,8 @@ class MassNode(EstimatorNode):
             raise ParameterError(f"mass.*: {exc}") from exc
         self.core = LongitudinalMassEstimator(self.vehicle, self.config)
         self.bias = FusionImuBias()
-        self.accel_filter = LinearlyWeightedMovingAverage(self.accel_window)
-        self.ax_specific: float | None = None
+        self.window = UpdateWindow()
+        self.have_imu = False
         self.slope = UpstreamHistory()
         self.odom_speed = UpstreamHistory()
         self.can_speed: tuple[float, float] | None = None
@@ -99,7 +136,7 @@ class MassNode(EstimatorNode):
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         self.subscribe_imu_bias(self.bias)
-        self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, _odom_speed)
+        self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
 
     # -------------------------------------------------------------- inputs
@@ -109,7 +146,8 @@ class MassNode(EstimatorNode):
             self.reject("imu:invalid")
             return
         f, _ = self.bias.correct(t, f, w)
-        self.ax_specific = self.accel_filter.add(float(f[0]))
+        self.window.add_accel(float(f[0]))
+        self.have_imu = True
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
         v = msg.twist.twist.linear.x
@@ -138,14 +176,24 @@ class MassNode(EstimatorNode):
         slope_ok = slope_item is not None and t - slope_item.stamp <= STALE_AFTER_S
         self.set_missing("road slope", not slope_ok)
         self.set_missing("vehicle speed", speed is None)
-        self.set_missing("acceleration (imu/data)", self.ax_specific is None)
-        if speed is not None and self.ax_specific is not None:
-            slope = slope_item.value if slope_ok else 0.0
-            ax = self.ax_specific - self.vehicle.gravity * math.sin(slope)
+        self.set_missing("acceleration (imu/data)", not self.have_imu)
+        window = self.window
+        if speed is not None:
             brake = self.brake_torque if t - self.brake_t <= STALE_AFTER_S else 0.0
-            self.core.step(t, speed, ax, slope, drive_force=pt.drive_force,
-                           engine_torque=pt.engine_torque, engine_speed=pt.engine_speed,
-                           engine_load=pt.engine_load, gear=pt.gear, brake_torque=brake)
+            window.add(t, brake, pt.gear, vx=speed, slope=slope_item.value if slope_ok else 0.0,
+                       drive_force=pt.drive_force, engine_torque=pt.engine_torque,
+                       engine_speed=pt.engine_speed, engine_load=pt.engine_load)
+        if not math.isnan(window.start) and t - window.start >= 1.0 / self.update_rate - 1e-9:
+            if math.isfinite(window.accel):
+                slope = window.mean("slope")
+                ax = window.accel - self.vehicle.gravity * math.sin(slope)
+                self.core.step(t, window.mean("vx"), ax, slope,
+                               drive_force=window.mean("drive_force"),
+                               engine_torque=window.mean("engine_torque"),
+                               engine_speed=window.mean("engine_speed"),
+                               engine_load=window.mean("engine_load"), gear=window.gear,
+                               brake_torque=window.brake)
+            window.clear()
         if t - self._last_pub >= 1.0 / self.rate - 1e-9:
             self._last_pub = t
             self.publish_estimate(t)
@@ -172,8 +220,8 @@ class MassNode(EstimatorNode):
     def reset_estimators(self) -> None:
         self.core.reset()
         self.bias.clear()
-        self.accel_filter.clear()
-        self.ax_specific = None
+        self.window.clear()
+        self.have_imu = False
         self.slope.clear()
         self.odom_speed.clear()
         self.can_speed = None
@@ -187,11 +235,6 @@ class MassNode(EstimatorNode):
             values[f"samples skipped: {k}"] = str(v)
         return values
 
-
-def _odom_speed(msg: Odometry) -> tuple[float, tuple[float, float]] | None:
-    t = stamp_to_sec(msg.header.stamp)
-    v = msg.twist.twist.linear.x
-    return (t, (t, v)) if math.isfinite(v) else None
 
 
 def main(args: list[str] | None = None) -> int:

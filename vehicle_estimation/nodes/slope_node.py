@@ -28,8 +28,8 @@ from vehicle_estimation import topics
 from vehicle_estimation.core import slope as slope_core
 from vehicle_estimation.nodes.base import (
     EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
-    run_node, stamp_to_sec)
-from vehicle_estimation.nodes.conversions import imu_arrays
+    run_node)
+from vehicle_estimation.nodes.conversions import forward_speed_entry, imu_arrays
 
 METHODS = tuple(slope_core.SLOPE_METHODS)
 #: Variance published while no estimate exists yet: a 10 deg 1-sigma prior.
@@ -62,8 +62,8 @@ class SlopeNode(EstimatorNode):
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
             self.subscribe_imu_bias(self.bias)
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
-                                    _twist_speed)
-            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, _odom_speed)
+                                    forward_speed_entry)
+            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
 
     def _make_core(self):
         cls = slope_core.SLOPE_METHODS[self.method]
@@ -133,16 +133,6 @@ class SlopeNode(EstimatorNode):
                 "converged": str(self.core.converged), "imu bias from fusion": str(self.bias.valid)}
 
 
-def _twist_speed(msg: TwistWithCovarianceStamped) -> tuple[float, float] | None:
-    t = stamp_to_sec(msg.header.stamp)
-    v = msg.twist.twist.linear.x
-    return (t, (t, v)) if math.isfinite(v) else None
-
-
-def _odom_speed(msg: Odometry) -> tuple[float, float] | None:
-    t = stamp_to_sec(msg.header.stamp)
-    v = msg.twist.twist.linear.x
-    return (t, (t, v)) if math.isfinite(v) else None
 
 
 def main(args: list[str] | None = None) -> int:

@@ -10,7 +10,6 @@ tests). Log time = header stamp = T0_NS + t.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np

@@ -109,7 +109,6 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
 
     # ---- road arrays
     rs, rx, ry, rpsi, rz_grade = road.s, road.x, road.y, road.psi, road.grade
-    rkappa = road.kappa
     n_road = rs.size
     ds = float(rs[1] - rs[0])
     closed = road.closed
@@ -118,7 +117,6 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
     distance_mode = v_of_s is not None and np.all(np.isnan(v_ref))
     rx_l, ry_l, rpsi_l = rx.tolist(), ry.tolist(), rpsi.tolist()
     grade_l = np.arctan(rz_grade).tolist()
-    kappa_l = rkappa.tolist()
     vofs_l = v_of_s.tolist() if v_of_s is not None else None
 
     def road_index(s: float) -> int:

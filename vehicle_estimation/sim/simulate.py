@@ -96,7 +96,6 @@ def simulate(scenario: Scenario) -> SimResult:
         return np.concatenate([a, a[-1:]])
 
     psi0 = float(road.psi[0])
-    theta0 = float(np.arctan(road.grade[0]))
     tt = np.arange(fast["vx"].size + 1) * dt
     vx = with_init(fast["vx"], scn.initial_speed)
     vy = with_init(fast["vy"], 0.0)
