@@ -179,43 +179,62 @@ def test_state_node_estimates_speed_from_wheels_and_imu():
         h.close()
 
 
-def test_mass_node_recovers_mass_from_drive_force():
+def _mass_drive_stream(p, mass_true: float, slope_msgs: bool):
+    """40 s of pulsed acceleration on a level road: IMU, CAN speed, wheels, drive force, slope."""
+    stream, v = [], 5.0
+    for i in range(8000):
+        ti = T0 + i * 0.005
+        a = 1.2 if (i // 400) % 2 == 0 else 0.2
+        v += a * 0.005
+        stream.append((topics.IMU, imu_msg(ti, [a, 0, G], [0, 0, 0])))
+        if i % 2:
+            continue
+        stream.append((topics.SPEED, speed_msg(ti, v)))
+        js = JointState()
+        sec_to_time(ti, js.header.stamp)
+        js.name = list(topics.WHEEL_JOINTS)
+        js.velocity = [v / p.wheel_radius] * 4
+        js.effort = [0.0] * 4
+        stream.append((topics.JOINT_STATES, js))
+        drive = (mass_true + p.wheel_inertia / p.wheel_radius ** 2) * a \
+            + 0.5 * p.air_density * p.drag_area * v * v + mass_true * p.gravity * p.rolling_resistance
+        pt = JointState()
+        sec_to_time(ti, pt.header.stamp)
+        pt.name = [topics.ENGINE_JOINT, topics.DRIVE_JOINT]
+        pt.velocity = [math.nan, math.nan]
+        pt.effort = [math.nan, drive]
+        stream.append((topics.POWERTRAIN, pt))
+        if slope_msgs and i % 10 == 0:
+            slope = Vector3Stamped()
+            sec_to_time(ti, slope.header.stamp)
+            slope.vector.x, slope.vector.y, slope.vector.z = 0.0, 1e-6, 1.0
+            stream.append((topics.ROAD_SLOPE_STAMPED, slope))
+    return stream
+
+
+@pytest.mark.parametrize("with_slope", [True, False])
+def test_mass_node_recovers_mass_from_drive_force(with_slope):
     mass_true = 1800.0
     node = MassNode(parameter_overrides=vehicle_overrides())
-    p = node.vehicle
     h = Harness(node)
     try:
-        for msg_type, topic in ((JointState, topics.POWERTRAIN), (Imu, topics.IMU),
-                                (TwistWithCovarianceStamped, topics.SPEED)):
+        inputs = [(JointState, topics.POWERTRAIN), (Imu, topics.IMU), (JointState, topics.JOINT_STATES),
+                  (TwistWithCovarianceStamped, topics.SPEED), (Vector3Stamped, topics.ROAD_SLOPE_STAMPED)]
+        for msg_type, topic in inputs:
             h.probe.publisher_for(msg_type, topic)
         out = h.probe.watch(Vector3Stamped, topics.MASS_STAMPED)
         diagnostics = h.probe.watch(DiagnosticArray, "/diagnostics")
-        h.connect([topics.POWERTRAIN, topics.IMU, topics.SPEED])
-        stream = []
-        v = 5.0
-        for i in range(8000):  # 40 s at 200 Hz of pulsed acceleration on a flat road
-            ti = T0 + i * 0.005
-            a = 1.2 if (i // 400) % 2 == 0 else 0.2
-            v += a * 0.005
-            stream.append((topics.IMU, imu_msg(ti, [a, 0, G], [0, 0, 0])))
-            if i % 2 == 0:
-                stream.append((topics.SPEED, speed_msg(ti, v)))
-                drive = (mass_true + p.wheel_inertia / p.wheel_radius ** 2) * a \
-                    + 0.5 * p.air_density * p.drag_area * v * v + mass_true * p.gravity * p.rolling_resistance
-                js = JointState()
-                sec_to_time(ti, js.header.stamp)
-                js.name = [topics.ENGINE_JOINT, topics.DRIVE_JOINT]
-                js.position = [math.nan, math.nan]
-                js.velocity = [math.nan, math.nan]
-                js.effort = [math.nan, drive]
-                stream.append((topics.POWERTRAIN, js))
-        h.publish_stream(stream)
+        h.connect([topic for _, topic in inputs])
+        h.publish_stream(_mass_drive_stream(node.vehicle, mass_true, with_slope))
         assert h.wait_for(lambda: len(out) > 50)
-        assert out[-1].vector.x == pytest.approx(mass_true, rel=0.03)
         assert all(math.isfinite(m.vector.x) and m.vector.y >= 0 for m in out)
-        # no slope node running: diagnostics say so
-        assert h.wait_for(lambda: any("road slope" in s.message for d in diagnostics for s in d.status),
-                          timeout=5.0)
+        if with_slope:
+            assert out[-1].vector.x == pytest.approx(mass_true, rel=0.03)
+        else:
+            # no slope node: no update on a guessed grade, the prior stays, diagnostics say why
+            assert out[-1].vector.x == pytest.approx(1000.0)
+            assert h.wait_for(lambda: any("road slope" in s.message for d in diagnostics for s in d.status),
+                              timeout=5.0)
     finally:
         h.close()
 

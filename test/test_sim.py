@@ -12,9 +12,9 @@ from vehicle_estimation.sim import (SCENARIOS, RoadSpec, Scenario, SensorConfig,
                                     default_scenario, load_cycle, load_vehicle, params_path,
                                     scenario_by_name, simulate, write_bag)
 
-SEDAN = load_vehicle("sedan_d_class")
+SEDAN = dataclasses.replace(load_vehicle("sedan_d_class"), pitch_gain=0.0)  # a rigid body: IMU pitch = road
 CLEAN = SensorConfig(accel_bias=(0.0, 0.0, 0.0), gyro_bias=(0.0, 0.0, 0.0), accel_bias_rw=0.0,
-                     gyro_bias_rw=0.0, imu_misalignment_deg=(0.0, 0.0, 0.0), suspension_pitch_gain=0.0)
+                     gyro_bias_rw=0.0, imu_misalignment_deg=(0.0, 0.0, 0.0))
 FLAT_STRAIGHT = RoadSpec(kind="straight", grade_max=0.0)
 
 

@@ -71,6 +71,10 @@ class VehicleParams:
     magic_c: float = 1.3
     magic_d: float = 1.0                                 # peak factor, times μ F_z
     magic_e: float = 0.97
+    # Body pitch on the suspension per longitudinal acceleration (squat/dive), positive nose up
+    # when accelerating: the IMU sees it, the road does not have it.
+    pitch_gain: float = 0.002                            # [rad per m/s^2]
+    pitch_time_constant: float = 0.15                    # first-order lag of that pitch [s]
     gravity: float = GRAVITY
 
     @property
@@ -105,7 +109,8 @@ class VehicleParams:
             value = getattr(self, key)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"vehicle.{key} must be a finite positive number, got {value!r}")
-        for key in ("wheel_inertia", "engine_inertia", "rolling_resistance", "engine_drag_torque"):
+        for key in ("wheel_inertia", "engine_inertia", "rolling_resistance", "engine_drag_torque", "pitch_gain",
+                    "pitch_time_constant"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"vehicle.{key} must be finite and >= 0, got {value!r}")

@@ -229,6 +229,8 @@ VEHICLE_PARAM_RANGES: dict[str, tuple[float, float, str]] = {
     "magic_c": (0.1, 5.0, "Magic Formula shape factor C"),
     "magic_d": (0.1, 5.0, "Magic Formula peak factor D (times mu F_z)"),
     "magic_e": (-10.0, 1.0, "Magic Formula curvature factor E"),
+    "pitch_gain": (0.0, 0.05, "Body pitch per longitudinal acceleration, nose up when accelerating [rad per m/s^2]"),
+    "pitch_time_constant": (0.0, 5.0, "Time constant of the suspension pitch response [s]"),
     "gravity": (9.7, 9.9, "Gravitational acceleration [m/s^2]"),
 }
 

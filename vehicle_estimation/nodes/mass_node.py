@@ -21,7 +21,6 @@ Publishes ``estimation/mass`` (std_msgs/Float64, kg) and ``estimation/mass_stamp
 from __future__ import annotations
 
 import math
-from collections import deque
 
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
@@ -63,6 +62,8 @@ class UpdateWindow:
         self.counts = dict.fromkeys(self.FIELDS, 0)
         self.accel_sum = 0.0
         self.accel_n = 0
+        self.wheel_t: list[float] = []
+        self.wheel_v: list[float] = []
         self.brake = 0.0
         self.gears: set[float] = set()
 
@@ -80,6 +81,20 @@ class UpdateWindow:
         self.brake = max(self.brake, brake)
         if math.isfinite(gear):
             self.gears.add(gear)
+
+    def add_wheel_speed(self, t: float, v: float) -> None:
+        self.wheel_t.append(t)
+        self.wheel_v.append(v)
+
+    @property
+    def wheel_accel(self) -> float:
+        """Least-squares slope of the undriven wheels' speed over the window [m/s^2]."""
+        if len(self.wheel_t) < 3:
+            return math.nan
+        t = np.asarray(self.wheel_t) - self.wheel_t[0]
+        if t[-1] <= 0.0:
+            return math.nan
+        return float(np.polyfit(t, np.asarray(self.wheel_v), 1)[0])
 
     def mean(self, key: str) -> float:
         return self.sums[key] / self.counts[key] if self.counts[key] else math.nan
@@ -122,6 +137,14 @@ class MassNode(EstimatorNode):
         self.bias = FusionImuBias()
         self.window = UpdateWindow()
         self.have_imu = False
+        self.accel_source = self.declare_str(
+            "accel_source", "auto", "Longitudinal acceleration for the RLS (see _window_accel)",
+            ("auto", "wheel_speed", "imu"))
+        self.require_slope = self.declare_bool(
+            "require_slope", True,
+            "Update only with a slope estimate from the slope node (else assume a level road)")
+        axle = {"front": [2, 3], "rear": [0, 1], "all": [0, 1, 2, 3]}[self.vehicle.driven_axle]
+        self.undriven_wheels = np.array(axle)
         self.slope = UpstreamHistory()
         self.odom_speed = UpstreamHistory()
         self.can_speed: tuple[float, float] | None = None
@@ -158,12 +181,16 @@ class MassNode(EstimatorNode):
 
     def on_joint_states(self, t: float, msg: JointState) -> None:
         try:
-            total = chassis_reading(msg).total_brake_torque
+            reading = chassis_reading(msg)
+            total = reading.total_brake_torque
         except MalformedMessage:
             self.reject("joint_states:malformed")
             return
         if math.isfinite(total):
             self.brake_torque, self.brake_t = max(total, 0.0), t
+        undriven = reading.wheel_speeds[self.undriven_wheels]
+        if np.all(np.isfinite(undriven)):
+            self.window.add_wheel_speed(t, float(np.mean(undriven)) * self.vehicle.wheel_radius)
 
     def on_powertrain(self, t: float, msg: JointState) -> None:
         try:
@@ -176,7 +203,6 @@ class MassNode(EstimatorNode):
         slope_ok = slope_item is not None and t - slope_item.stamp <= STALE_AFTER_S
         self.set_missing("road slope", not slope_ok)
         self.set_missing("vehicle speed", speed is None)
-        self.set_missing("acceleration (imu/data)", not self.have_imu)
         window = self.window
         if speed is not None:
             brake = self.brake_torque if t - self.brake_t <= STALE_AFTER_S else 0.0
@@ -184,9 +210,11 @@ class MassNode(EstimatorNode):
                        drive_force=pt.drive_force, engine_torque=pt.engine_torque,
                        engine_speed=pt.engine_speed, engine_load=pt.engine_load)
         if not math.isnan(window.start) and t - window.start >= 1.0 / self.update_rate - 1e-9:
-            if math.isfinite(window.accel):
-                slope = window.mean("slope")
-                ax = window.accel - self.vehicle.gravity * math.sin(slope)
+            slope = window.mean("slope")
+            ax = self._window_accel(window, slope)
+            # No update on a guessed slope: a 1 % grade error is a 10 % error in phi at 1 m/s^2.
+            ready = math.isfinite(ax) and (slope_ok or not self.require_slope)
+            if ready:
                 self.core.step(t, window.mean("vx"), ax, slope,
                                drive_force=window.mean("drive_force"),
                                engine_torque=window.mean("engine_torque"),
@@ -197,6 +225,26 @@ class MassNode(EstimatorNode):
         if t - self._last_pub >= 1.0 / self.rate - 1e-9:
             self._last_pub = t
             self.publish_estimate(t)
+
+    def _window_accel(self, window: UpdateWindow, slope: float) -> float:
+        """Longitudinal acceleration dv/dt over the window.
+
+        ``wheel_speed``: the slope of the undriven wheels' speed. It carries no gravity and no
+        body pitch, so neither the accelerometer bias nor the suspension's squat and dive
+        (which tilt the IMU by ~0.1 deg per m/s^2) reach the mass. ``imu``: paper 003's choice,
+        the mean bias-compensated specific force minus g sin(slope); needs the fusion's bias.
+        ``auto`` takes the wheels when they report and the IMU otherwise.
+        """
+        if self.accel_source in ("wheel_speed", "auto"):
+            a = window.wheel_accel
+            self.set_missing("undriven wheel speeds", not math.isfinite(a) and self.accel_source == "wheel_speed")
+            if math.isfinite(a) or self.accel_source == "wheel_speed":
+                return a
+        if not self.bias.valid:
+            self.set_missing("IMU bias (estimation/imu_bias)", True)
+            return math.nan
+        self.set_missing("IMU bias (estimation/imu_bias)", False)
+        return window.accel - self.vehicle.gravity * math.sin(slope)
 
     def _speed_at(self, t: float) -> float | None:
         item = self.odom_speed.at(t)

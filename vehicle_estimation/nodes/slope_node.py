@@ -38,6 +38,36 @@ PRIOR_VARIANCE = math.radians(10.0) ** 2
 STALE_AFTER_S = 1.0
 
 
+class SuspensionPitch:
+    """Body pitch on the suspension from longitudinal acceleration (squat and dive).
+
+    The fusion pitch is the IMU's, i.e. the body's; the road's grade is that minus the pitch
+    the suspension adds, ``pitch_gain * a_x`` through a first-order lag of
+    ``pitch_time_constant`` (vehicle parameters). Uncorrected, it makes the grade error follow
+    the acceleration, which is exactly what the mass estimator's regressor cannot tolerate.
+    """
+
+    def __init__(self, gain: float, time_constant: float) -> None:
+        self.gain, self.tau = gain, time_constant
+        self.state = 0.0
+        self.t: float | None = None
+
+    def update(self, t: float, accel: float) -> float:
+        if not math.isfinite(accel):
+            return self.state
+        target = self.gain * accel
+        if self.t is None or self.tau <= 0.0:
+            self.state = target
+        else:
+            dt = min(max(t - self.t, 0.0), 1.0)
+            self.state += (target - self.state) * (1.0 - math.exp(-dt / self.tau))
+        self.t = t
+        return self.state
+
+    def reset(self) -> None:
+        self.state, self.t = 0.0, None
+
+
 class SlopeNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("road_slope", **node_kwargs)
@@ -45,6 +75,7 @@ class SlopeNode(EstimatorNode):
         self.method = self.declare_str("method", "fusion_pitch", "Slope method", METHODS)
         self.rate = self.declare_float("publish_rate_hz", 50.0, "Output rate [Hz]", 0.1, 1000.0)
         self.core = self._make_core()
+        self.squat = SuspensionPitch(self.vehicle.pitch_gain, self.vehicle.pitch_time_constant)
         self.bias = FusionImuBias()
         self.grade = UpstreamHistory()
         self.state_speed = UpstreamHistory(lag_s=self.feedback_lag)
@@ -98,8 +129,10 @@ class SlopeNode(EstimatorNode):
             item = self.grade.at(t)
             missing = item is None or t - item.stamp > STALE_AFTER_S
             self.set_missing("fusion road grade", missing)
-            if not missing and not self.core.step(t, item.value, item.variance):
-                self.reject("slope:rejected_by_core")
+            if not missing:
+                grade = item.value - self.squat.update(t, float(f[0]) - self.vehicle.gravity * math.sin(item.value))
+                if not self.core.step(t, grade, item.variance):
+                    self.reject("slope:rejected_by_core")
         else:
             f, w = self.bias.correct(t, f, w)
             speed = self.speed_at(t)
@@ -122,6 +155,7 @@ class SlopeNode(EstimatorNode):
 
     def reset_estimators(self) -> None:
         self.core = self._make_core()
+        self.squat.reset()
         self.bias.clear()
         for history in (self.grade, self.state_speed, self.odom_speed):
             history.clear()

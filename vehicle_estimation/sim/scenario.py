@@ -80,7 +80,6 @@ class SensorConfig:
     outlier_magnitude_ay: float = 3.0         # [m/s²], random sign, times U(0.7, 1.5)
     outlier_magnitude_r: float = 0.15         # [rad/s]
     # vehicle body motion seen by the IMU
-    suspension_pitch_gain: float = 0.002      # pitch [rad] per m/s² of deceleration (nose down when braking)
     suspension_roll_gain: float = 0.0         # roll [rad] per m/s² of lateral acceleration
 
 

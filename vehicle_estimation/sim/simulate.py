@@ -117,7 +117,7 @@ def simulate(scenario: Scenario) -> SimResult:
     ay = step_vals(fast["ay"])
     vxd = step_vals(fast["vxd"])
     # body attitude: road slope + suspension
-    pitch = -theta + _lowpass(-cfg.suspension_pitch_gain * ax, dt, 0.15)
+    pitch = -theta + _lowpass(-vp.pitch_gain * ax, dt, vp.pitch_time_constant)
     roll = _lowpass(cfg.suspension_roll_gain * ay, dt, 0.15)
     pdot = np.gradient(pitch, dt)
     rdot = np.gradient(roll, dt)
