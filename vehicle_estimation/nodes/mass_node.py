@@ -66,6 +66,7 @@ class UpdateWindow:
         self.wheel_v: list[float] = []
         self.brake = 0.0
         self.gears: set[float] = set()
+        self.slope_trusted = True
 
     def add_accel(self, ax_specific: float) -> None:
         self.accel_sum += ax_specific
@@ -143,6 +144,9 @@ class MassNode(EstimatorNode):
         self.require_slope = self.declare_bool(
             "require_slope", True,
             "Update only with a slope estimate from the slope node (else assume a level road)")
+        self.max_slope_var = math.radians(self.declare_float(
+            "max_slope_std_deg", 0.2,
+            "Update only while the slope estimate is converged with at most this std [deg]", 0.01, 90.0)) ** 2
         axle = {"front": [2, 3], "rear": [0, 1], "all": [0, 1, 2, 3]}[self.vehicle.driven_axle]
         self.undriven_wheels = np.array(axle)
         self.slope = UpstreamHistory()
@@ -202,6 +206,10 @@ class MassNode(EstimatorNode):
         slope_item = self.slope.at(t)
         slope_ok = slope_item is not None and t - slope_item.stamp <= STALE_AFTER_S
         self.set_missing("road slope", not slope_ok)
+        # The regressor carries g sin(slope): a slope still converging (0.5 deg is 0.09 m/s^2,
+        # 10-20 % of a typical acceleration) would teach the filter a wrong mass for minutes.
+        if not (slope_ok and slope_item.converged and slope_item.variance <= self.max_slope_var):
+            self.window.slope_trusted = False
         self.set_missing("vehicle speed", speed is None)
         window = self.window
         if speed is not None:
@@ -213,7 +221,7 @@ class MassNode(EstimatorNode):
             slope = window.mean("slope")
             ax = self._window_accel(window, slope)
             # No update on a guessed slope: a 1 % grade error is a 10 % error in phi at 1 m/s^2.
-            ready = math.isfinite(ax) and (slope_ok or not self.require_slope)
+            ready = math.isfinite(ax) and (window.slope_trusted or not self.require_slope)
             if ready:
                 self.core.step(t, window.mean("vx"), ax, slope,
                                drive_force=window.mean("drive_force"),
