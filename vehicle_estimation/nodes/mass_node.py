@@ -145,7 +145,7 @@ class MassNode(EstimatorNode):
             "require_slope", True,
             "Update only with a slope estimate from the slope node (else assume a level road)")
         self.max_slope_var = math.radians(self.declare_float(
-            "max_slope_std_deg", 0.2,
+            "max_slope_std_deg", 0.5,
             "Update only while the slope estimate is converged with at most this std [deg]", 0.01, 90.0)) ** 2
         axle = {"front": [2, 3], "rear": [0, 1], "all": [0, 1, 2, 3]}[self.vehicle.driven_axle]
         self.undriven_wheels = np.array(axle)
