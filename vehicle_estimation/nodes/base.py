@@ -107,7 +107,8 @@ def replay_qos() -> QoSProfile:
 
 
 def stamp_to_sec(stamp: Any) -> float:
-    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+    """Float seconds of a builtin_interfaces/Time, via integer ns (the same float every node gets)."""
+    return (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9
 
 
 def sec_to_stamp(t: float, msg_stamp: Any) -> Any:
@@ -247,7 +248,7 @@ class EstimatorNode(Node):
         self.events: deque[str] = deque(maxlen=5)
         self._publishers_by_topic: dict[str, Any] = {}
         self._subscriptions_by_topic: dict[str, Any] = {}
-        self._queue: list[tuple[float, str, int, Callable[[float, Any], None], Any]] = []
+        self._queue: list[tuple[int, str, int, Callable[[float, Any], None], Any]] = []
         self._seq = itertools.count()
         self._released_until = -math.inf
         self._last_stamp_by_topic: dict[str, float] = {}
@@ -376,7 +377,11 @@ class EstimatorNode(Node):
                 return
             # Ties on the stamp are broken by topic name, then arrival order within the topic
             # (FIFO per topic), never by arrival order across topics: that is not reproducible.
-            heapq.heappush(self._queue, (t, name, next(self._seq), handler, msg))
+            # Ordered by integer nanoseconds: stamps on a replay tick boundary must fall on the
+            # same side of it in every node, which float seconds near 1.7e9 cannot promise.
+            ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec) \
+                if hasattr(msg, "header") else int(round(t * 1e9))
+            heapq.heappush(self._queue, (ns, name, next(self._seq), handler, msg))
             self._release_available()
 
         sub = self.create_subscription(msg_type, topic, on_message, sensor_qos(self.input_depth))
@@ -420,9 +425,11 @@ class EstimatorNode(Node):
         elif self._pending_sync is not None:
             self._try_complete_sync()
 
-    def _release(self, horizon: float) -> None:
-        while self._queue and self._queue[0][0] < horizon:
-            t, topic, _, handler, msg = heapq.heappop(self._queue)
+    def _release(self, horizon_ns: float) -> None:
+        """Hand queued inputs stamped before ``horizon_ns`` (integer ns, or inf) to their handlers."""
+        while self._queue and self._queue[0][0] < horizon_ns:
+            ns, topic, _, handler, msg = heapq.heappop(self._queue)
+            t = ns * 1e-9
             # A jump back is judged per topic: a bag played in a loop or a restarted driver makes
             # a topic's own stamps go backwards, while a topic that is merely processed late
             # behind a busier one (a backlog in live mode) keeps its own order.
@@ -451,7 +458,8 @@ class EstimatorNode(Node):
         msg = self._pending_sync
         if msg is None:
             return
-        tick = float(msg.message)
+        tick_ns = int(msg.message)  # the player's tick, integer nanoseconds of bag time
+        tick = tick_ns * 1e-9
         for kv in msg.values:
             if kv.key.startswith(TX_PREFIX):
                 topic = kv.key[len(TX_PREFIX):]
@@ -464,7 +472,7 @@ class EstimatorNode(Node):
             self._last_stamp_by_topic.clear()
             self.reset_estimators()
         self._last_sync_time = tick
-        self._release(tick - self.release_delay)
+        self._release(tick_ns - int(round(self.release_delay * 1e9)))
         self._pending_sync = None
         self._last_sync = msg
         self._send_ack()
@@ -562,8 +570,8 @@ def make_executor():
     """The C++ events executor of rclpy (Jazzy: ``rclpy.experimental``) when present.
 
     It dispatches callbacks without rebuilding a wait set in Python for every message, which
-    cuts the per-message overhead several-fold; the plain single-threaded executor is the
-    fallback. ``VEHICLE_ESTIMATION_EXECUTOR=single_threaded`` forces the fallback.
+    roughly doubles replay speed here; the plain single-threaded executor is the fallback.
+    ``VEHICLE_ESTIMATION_EXECUTOR=single_threaded`` forces the fallback.
     """
     import os
     if os.environ.get("VEHICLE_ESTIMATION_EXECUTOR", "events") == "events":

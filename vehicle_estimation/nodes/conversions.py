@@ -117,6 +117,6 @@ def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
     Both carry the body-frame forward speed in ``twist.twist.linear.x``.
     """
     stamp = msg.header.stamp
-    t = float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+    t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
     v = msg.twist.twist.linear.x
     return (t, (t, v)) if math.isfinite(v) else None

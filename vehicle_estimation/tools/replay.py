@@ -328,7 +328,7 @@ def _spin_until(driver, executor, group, predicate, resend, timeout: float, what
 
 
 def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None:
-    label = repr((t_start_ns - 10**9) * 1e-9)
+    label = str(t_start_ns - 10**9)
     _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
                 lambda: (driver.clock_pub.publish(_clock(t_start_ns - 10**9)), driver.send_sync(label, handshake=True)),
                 timeout, "start-up (waiting for every node and connection)")
@@ -337,7 +337,7 @@ def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None
 def _tick(driver, executor, group, tick_ns: int, timeout: float) -> None:
     driver.now_ns = tick_ns
     driver.clock_pub.publish(_clock(tick_ns))
-    label = repr(tick_ns * 1e-9)
+    label = str(tick_ns)
     _spin_until(driver, executor, group, lambda: driver.quiescent(label),
                 lambda: driver.send_sync(label), timeout, f"tick {label}")
 
