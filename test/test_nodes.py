@@ -117,6 +117,34 @@ def test_fusion_node_tracks_a_straight_drive():
         h.close()
 
 
+def test_imu_bias_message_carries_the_mounting():
+    """estimation/imu_bias: bias in imu_link, orientation = imu_link -> base_link; the
+    consumers' correction removes the bias and rotates into base_link."""
+    from vehicle_estimation.core.rotations import quat_from_euler, quat_to_rotmat
+    from vehicle_estimation.nodes.base import FusionImuBias
+
+    q = quat_from_euler(0.01, -0.02, 0.005)
+    msg = Imu()
+    sec_to_time(T0, msg.header.stamp)
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (float(v) for v in q)
+    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = 0.1, -0.05, 0.02
+    msg.angular_velocity.z = 0.003
+    bias = FusionImuBias()
+    entry = FusionImuBias.convert(msg)
+    bias.history.add(*entry)
+    f_base = np.array([1.0, 0.2, 9.8])
+    C = quat_to_rotmat(q)
+    f_raw = C.T @ f_base + np.array([0.1, -0.05, 0.02])
+    f, w = bias.correct(T0, f_raw, C.T @ np.array([0.0, 0.0, 0.2]) + np.array([0.0, 0.0, 0.003]))
+    assert bias.valid
+    np.testing.assert_allclose(f, f_base, atol=1e-12)
+    np.testing.assert_allclose(w, [0.0, 0.0, 0.2], atol=1e-12)
+    # a publisher that leaves the orientation at zero means "no mounting": identity
+    msg.orientation.w = msg.orientation.x = msg.orientation.y = msg.orientation.z = 0.0
+    _, (_, _, mount) = FusionImuBias.convert(msg)
+    np.testing.assert_array_equal(mount, np.eye(3))
+
+
 def test_slope_node_passes_the_fusion_grade():
     node = SlopeNode(parameter_overrides=vehicle_overrides() + [Parameter("method", value="fusion_pitch")])
     h = Harness(node)
@@ -243,6 +271,7 @@ def test_mass_node_recovers_mass_from_drive_force(with_slope):
     ("mass_node", "mass.forgetting_factor:=1.5", "forgetting_factor"),
     ("slope_node", "method:=bogus", "method"),
     ("state_node", "vehicle.mass:=-5.0", "vehicle.mass"),
+    ("fusion_node", "fusion.mounting_rpy:=[0.0, 5.0, 0.0]", "mounting_rpy"),
 ])
 def test_bad_parameter_stops_node_naming_it(module, override, name):
     proc = subprocess.run(

@@ -19,6 +19,22 @@ estimation of vehicle mass ...", MSSP 171, 108925), Sec. 5 and Alg. 1:
   gyro bias = mean of ``init_stationary_samples`` (200) stationary gyro samples,
   accelerometer bias zero, yaw from GNSS motion once the vehicle moves.
 
+Beyond the paper: IMU mounting states.  The paper's IMU was calibrated to the body; a
+car's IMU sits in ``imu_link``, rotated from ``base_link`` by a mounting rotation known
+only to a degree or so (REP-145).  The filter's attitude is the IMU's (what the gyros
+integrate), and two extra error states, the mounting pitch and yaw (about imu_link y and
+z), map it to the vehicle: the non-holonomic and CAN-speed constraints hold in
+``base_link``, not in ``imu_link``, and they make the two angles observable once the car
+moves (pitch through the vertical constraint and the GNSS height, yaw through the lateral
+one).  Without them a 0.5 deg mounting pitch is 0.5 deg of grade error, and a 0.4 deg
+mounting roll leaks yaw rate into pitch rate in every curve.  The states need a tight
+vertical constraint (``nh_sigma_z`` <= 1 m/s; Table 3's 15 m/s leaves the mounting pitch
+unobservable), so they are off by default, as in the paper, and on in the shipped
+``params/estimation.yaml``.  Mounting roll is not
+observable from the constraints; ``mounting_rpy`` gives the nominal mounting (roll
+included) and the states refine pitch and yaw from there.  Every output (orientation,
+grade, body velocity, compensated IMU) is in ``base_link``.
+
 Frames and conventions (REP-103): body = FLU (x forward, y left, z up); world = ENU.
 The paper's NED equations are frame-agnostic except for the gravity vector, so the
 filter runs directly in ENU with gravity (0, 0, -g).  Quaternions are (x, y, z, w),
@@ -40,12 +56,13 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from .rotations import (euler_from_rotmat, quat_from_euler, quat_multiply, quat_normalize,
-                        quat_to_rotmat, rot_z, skew)
+from .rotations import (euler_from_rotmat, quat_from_euler, quat_from_rotvec, quat_multiply,
+                        quat_normalize, quat_to_rotmat, rot_z, rotmat_to_quat, skew)
 
-# Error-state layout, Eq. (32): z = [dp, dv, eps, dba, dbg]
-IP, IV, IA, IBA, IBG = 0, 3, 6, 9, 12
-N_ERR = 15
+# Error-state layout, Eq. (32): z = [dp, dv, eps, dba, dbg], then the mounting pitch and
+# yaw corrections dm (about imu_link y, z; R_vi_true = R_vi_hat (I + S([0, dm]))).
+IP, IV, IA, IBA, IBG, IM = 0, 3, 6, 9, 12, 15
+N_ERR = 17
 
 STATUS_WAIT_STANDSTILL = "waiting_for_standstill"
 STATUS_ALIGNING = "aligning"
@@ -138,6 +155,11 @@ class FusionConfig:
     max_consecutive_rejections: int = 10     # then the position covariance is re-opened
     max_measurement_delay_s: float = 0.5     # measurements older than the filter by more: rejected
     max_imu_dt_s: float = 0.5                # larger IMU gaps are propagated but counted
+    # --- IMU mounting (imu_link in base_link; not in the paper, see the module docstring) ---
+    mounting_rpy: tuple = (0.0, 0.0, 0.0)    # nominal roll, pitch, yaw of imu_link in base_link [rad]
+    estimate_mounting: bool = False          # refine mounting pitch and yaw online (needs nh_sigma_z <= 1)
+    p0_mounting_sigma: float = 0.035         # [rad] (2 deg) prior on the pitch and yaw refinement
+    q_mounting_sigma: float = 1e-7           # [rad] per sample: a mounting does not move
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -155,6 +177,21 @@ class FusionConfig:
         v = self.stationary_speed_threshold
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ValueError(f"FusionConfig.stationary_speed_threshold must be >= 0, got {v!r}")
+        for name in ("p0_mounting_sigma", "q_mounting_sigma"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"FusionConfig.{name} must be a finite number >= 0, got {v!r}")
+        try:
+            m = np.asarray(self.mounting_rpy, dtype=float)
+        except (TypeError, ValueError):
+            m = np.full(1, np.nan)
+        if m.shape != (3,) or not np.all(np.isfinite(m)) or np.any(np.abs(m) > math.pi):
+            raise ValueError(f"FusionConfig.mounting_rpy must be 3 angles in [-pi, pi] rad, "
+                             f"got {self.mounting_rpy!r}")
+        if self.estimate_mounting and self.nh_sigma_z > 1.0:
+            raise ValueError(
+                "FusionConfig.estimate_mounting needs FusionConfig.nh_sigma_z <= 1 m/s: the "
+                f"mounting pitch is observed through the vertical constraint (nh_sigma_z={self.nh_sigma_z!r})")
         for name in ("p0_attitude_sigma", "gnss_sigma"):
             v = getattr(self, name)
             try:
@@ -174,7 +211,8 @@ class FusionConfig:
                 raise ValueError(f"FusionConfig.{name} must be an int >= 1, got {v!r}")
         if self.heading_max_fixes < 2:
             raise ValueError("FusionConfig.heading_max_fixes must be >= 2")
-        for name in ("stationary_update_longitudinal", "speed_unsigned", "full_velocity_jacobian"):
+        for name in ("stationary_update_longitudinal", "speed_unsigned", "full_velocity_jacobian",
+                     "estimate_mounting"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"FusionConfig.{name} must be a bool")
 
@@ -206,7 +244,9 @@ class FusionEKF:
         self._p0_diag = np.concatenate([
             np.full(3, c.p0_position_sigma ** 2), np.full(3, c.p0_velocity_sigma ** 2),
             np.asarray(c.p0_attitude_sigma, float) ** 2,
-            np.full(3, c.p0_accel_bias_sigma ** 2), np.full(3, c.p0_gyro_bias_sigma ** 2)])
+            np.full(3, c.p0_accel_bias_sigma ** 2), np.full(3, c.p0_gyro_bias_sigma ** 2),
+            np.full(2, c.p0_mounting_sigma ** 2 if c.estimate_mounting else 0.0)])
+        self._Rm0 = quat_to_rotmat(quat_from_euler(*(float(a) for a in c.mounting_rpy)))  # imu_link -> base_link
         self._w_gnss = np.diag(np.asarray(c.gnss_sigma, float) ** 2)
         self._g_vec = np.array([0.0, 0.0, -c.gravity])
         self._eye15 = np.eye(N_ERR)
@@ -226,6 +266,7 @@ class FusionEKF:
         self._R = np.eye(3)
         self._ba = np.zeros(3)
         self._bg = np.zeros(3)
+        self._Rm = self._Rm0.copy()   # imu_link -> base_link (mounting)
         self._P = np.diag(self._p0_diag)
         self._F = np.eye(N_ERR)
         self._t = None                # last IMU stamp
@@ -368,11 +409,38 @@ class FusionEKF:
         self._ba = np.zeros(3)
         self._v = np.zeros(3)
         self._p = self._last_gnss.copy() if self._last_gnss is not None else np.zeros(3)
-        self._P = np.diag(self._p0_diag)
+        self._P = self._aligned_covariance()
         self._align_f.clear()
         self._align_w.clear()
         self._heading_fixes = []
         self.status = STATUS_WAIT_HEADING
+
+    def _aligned_covariance(self) -> np.ndarray:
+        """P0 after the accelerometer alignment, with the tilt/bias correlation it creates.
+
+        The alignment takes the mean specific force as gravity and sets the accelerometer
+        bias to zero, so whatever bias b the sensor has (turn-on bias, and the g·sin(delta)
+        a mounting misalignment delta adds) goes into the tilt: from
+        f = R^T (g_up + S(g_up)... ) the tilt error is eps = A b with
+        R_hat b = S(g_up) eps, i.e. eps_x = (R_hat b)_y / g, eps_y = -(R_hat b)_x / g.
+        Table 2 gives independent sigmas; with them the filter believes the aligned tilt to
+        within p0_attitude_sigma while it is really off by |b|/g (0.1 m/s^2 is 0.6 deg), and
+        it has no way to move a later-observed bias error back into the tilt. Here the tilt
+        and bias errors start fully correlated (eps = A dba) plus Table 2's independent tilt
+        term, so observing the bias corrects the grade at once and the grade variance is
+        honest from the start.
+        """
+        P = np.diag(self._p0_diag)
+        g = self.config.gravity
+        # eps = A dba (x, y rows; yaw is unaffected by gravity)
+        A = np.zeros((3, 3))
+        A[0] = self._R[1] / g
+        A[1] = -self._R[0] / g
+        Pbb = P[IBA:IBA + 3, IBA:IBA + 3]
+        P[IA:IA + 3, IA:IA + 3] += A @ Pbb @ A.T
+        P[IA:IA + 3, IBA:IBA + 3] = A @ Pbb
+        P[IBA:IBA + 3, IA:IA + 3] = (A @ Pbb).T
+        return P
 
     def _propagate(self, dt: float) -> None:
         """INS mechanisation (Sec. 5.2) and covariance propagation (Eqs. (33)-(36))."""
@@ -423,24 +491,32 @@ class FusionEKF:
             self._qd = np.concatenate([
                 np.zeros(3), np.full(3, (dt * c.q_accel_sigma) ** 2),
                 np.full(3, (dt * c.q_gyro_sigma) ** 2),
-                np.full(3, kb * c.q_accel_bias_sigma ** 2), np.full(3, kb * c.q_gyro_bias_sigma ** 2)])
+                np.full(3, kb * c.q_accel_bias_sigma ** 2), np.full(3, kb * c.q_gyro_bias_sigma ** 2),
+                np.full(2, kb * c.q_mounting_sigma ** 2 if c.estimate_mounting else 0.0)])
             self._qd_dt = dt
         P[self._di, self._di] += self._qd
         self._P = P
 
     # ------------------------------------------------------------------ measurement helpers
     def _body_speed_rows(self, rows) -> tuple:
-        """Prediction v_b[rows] = (R^T v)[rows] and its Jacobian H (Eq. (46)).
+        """Prediction v_b[rows] = (R_m R^T v)[rows] in base_link and its Jacobian H (Eq. (46)).
 
-        With R_true = (I - S(eps)) R_hat:  v_b = R^T v - R^T S(v) eps  (the attitude
-        term is dropped when ``full_velocity_jacobian`` is False, as in Eq. (46)).
+        With R_true = (I - S(eps)) R_hat:  v_i = R^T v - R^T S(v) eps  (the attitude
+        term is dropped when ``full_velocity_jacobian`` is False, as in Eq. (46)); the
+        mounting R_m (imu_link -> base_link) with R_m,true = R_m (I + S(dm)) adds
+        v_b = R_m v_i - R_m S(v_i) dm.
         """
         Rt = self._R.T
-        vb = Rt @ self._v
+        Rm = self._Rm
+        vi = Rt @ self._v
+        vb = Rm @ vi
         H = np.zeros((len(rows), N_ERR))
-        H[:, IV:IV + 3] = Rt[rows]
+        RmRt = Rm @ Rt
+        H[:, IV:IV + 3] = RmRt[rows]
         if self.config.full_velocity_jacobian:
-            H[:, IA:IA + 3] = -(Rt[rows] @ skew(self._v))
+            H[:, IA:IA + 3] = -(RmRt[rows] @ skew(self._v))
+        if self.config.estimate_mounting:
+            H[:, IM:IM + 2] = -(Rm[rows] @ skew(vi))[:, 1:3]
         return vb[rows], H
 
     def _nh_update(self, t: float) -> None:
@@ -501,6 +577,8 @@ class FusionEKF:
         self._R = quat_to_rotmat(self._q)
         self._ba += dz[IBA:IBA + 3]
         self._bg += dz[IBG:IBG + 3]
+        if self.config.estimate_mounting:
+            self._Rm = self._Rm @ quat_to_rotmat(quat_from_rotvec([0.0, dz[IM], dz[IM + 1]]))
 
     def _reopen(self, kind: str, block: slice, W: np.ndarray, y: np.ndarray) -> None:
         """After many consecutive gate rejections: the filter is inconsistent; forget the
@@ -681,34 +759,56 @@ class FusionEKF:
 
     @property
     def velocity_body(self) -> np.ndarray:
-        return self._R.T @ self._v
-
-    @property
-    def quaternion(self) -> np.ndarray:
-        """(x, y, z, w), body FLU -> ENU."""
-        return self._q.copy()
+        """Velocity in base_link (FLU) [m/s]."""
+        return self._Rm @ (self._R.T @ self._v)
 
     @property
     def rotation_matrix(self) -> np.ndarray:
+        """base_link -> ENU."""
+        return self._R @ self._Rm.T
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """(x, y, z, w), base_link FLU -> ENU."""
+        return rotmat_to_quat(self.rotation_matrix)
+
+    @property
+    def imu_rotation_matrix(self) -> np.ndarray:
+        """imu_link -> ENU (the filter's own attitude)."""
         return self._R.copy()
 
     @property
+    def mounting_rotation(self) -> np.ndarray:
+        """imu_link -> base_link: the nominal mounting refined online."""
+        return self._Rm.copy()
+
+    @property
+    def mounting_rpy(self) -> np.ndarray:
+        """Roll, pitch, yaw of imu_link in base_link [rad]."""
+        return np.asarray(euler_from_rotmat(self._Rm), float)
+
+    @property
+    def mounting_covariance(self) -> np.ndarray:
+        """2x2 covariance of the mounting pitch and yaw refinement [rad^2]."""
+        return self._P[IM:IM + 2, IM:IM + 2].copy()
+
+    @property
     def roll(self) -> float:
-        return euler_from_rotmat(self._R)[0]
+        return euler_from_rotmat(self.rotation_matrix)[0]
 
     @property
     def pitch(self) -> float:
-        """REP-103 pitch about body y (positive = nose DOWN)."""
-        return euler_from_rotmat(self._R)[1]
+        """REP-103 pitch of base_link about its y axis (positive = nose DOWN)."""
+        return euler_from_rotmat(self.rotation_matrix)[1]
 
     @property
     def yaw(self) -> float:
-        return euler_from_rotmat(self._R)[2]
+        return euler_from_rotmat(self.rotation_matrix)[2]
 
     @property
     def road_grade(self) -> float:
-        """Angle of the body x axis above the horizontal [rad], positive nose-up/uphill."""
-        return math.asin(max(-1.0, min(1.0, self._R[2, 0])))
+        """Angle of the base_link x axis above the horizontal [rad], positive nose-up/uphill."""
+        return math.asin(max(-1.0, min(1.0, float(self._R[2] @ self._Rm[0]))))
 
     @property
     def accel_bias(self) -> np.ndarray:
@@ -720,7 +820,8 @@ class FusionEKF:
 
     @property
     def covariance(self) -> np.ndarray:
-        """15x15 error-state covariance, order [dp(ENU), dv(ENU), eps(ENU), dba(FLU), dbg(FLU)]."""
+        """17x17 error-state covariance, order [dp(ENU), dv(ENU), eps(ENU), dba(imu_link),
+        dbg(imu_link), dm (mounting pitch, yaw)]."""
         return self._P.copy()
 
     @property
@@ -734,17 +835,26 @@ class FusionEKF:
 
     @property
     def velocity_body_covariance(self) -> np.ndarray:
-        """Body (FLU) velocity covariance, including the attitude uncertainty
-        (for nav_msgs/Odometry twist, which is in the child/body frame)."""
-        Rt = self._R.T
-        J = np.hstack([Rt, -(Rt @ skew(self._v))])
-        return J @ self._P[IV:IA + 3, IV:IA + 3] @ J.T
+        """base_link (FLU) velocity covariance, including the attitude and mounting
+        uncertainty (for nav_msgs/Odometry twist, which is in the child/body frame)."""
+        _, H = self._body_speed_rows([0, 1, 2])
+        return H @ self._P @ H.T
+
+    def _base_attitude_jacobian(self) -> np.ndarray:
+        """J with eps_base = J z: R_wb,true = (I - S(eps_base)) R_wb,hat.
+
+        R_wb = R R_m^T; R_m,true^T = (I - S(dm)) R_m^T, so eps_base = eps + R [0, dm]."""
+        J = np.zeros((3, N_ERR))
+        J[:, IA:IA + 3] = self._eye3
+        J[:, IM:IM + 2] = self._R[:, 1:3]
+        return J
 
     @property
     def attitude_covariance(self) -> np.ndarray:
-        """Attitude error covariance about the fixed ENU x, y, z axes [rad^2]
+        """base_link attitude error covariance about the fixed ENU x, y, z axes [rad^2]
         (the sensor_msgs/Imu and nav_msgs/Odometry convention)."""
-        return self._P[IA:IA + 3, IA:IA + 3].copy()
+        J = self._base_attitude_jacobian()
+        return J @ self._P @ J.T
 
     @property
     def accel_bias_covariance(self) -> np.ndarray:
@@ -758,13 +868,14 @@ class FusionEKF:
     def road_grade_variance(self) -> float:
         """Variance of ``road_grade`` [rad^2] from the attitude covariance.
 
-        grade = asin(e_z . R e_x);  with R_true = (I - S(eps)) R_hat,
-        d(grade) = -(eps_x b_y - eps_y b_x) / cos(grade),  b = R_hat e_x.
+        grade = asin(e_z . R_wb e_x);  with R_wb,true = (I - S(eps_b)) R_wb,hat,
+        d(grade) = -(eps_b,x b_y - eps_b,y b_x) / cos(grade),  b = R_wb,hat e_x.
         """
-        b = self._R[:, 0]
+        b = self.rotation_matrix[:, 0]
         cg = max(math.sqrt(max(0.0, 1.0 - b[2] * b[2])), 1e-6)
         j = np.array([-b[1], b[0], 0.0]) / cg
-        return float(j @ self._P[IA:IA + 3, IA:IA + 3] @ j)
+        j = j @ self._base_attitude_jacobian()
+        return float(j @ self._P @ j)
 
     @property
     def pitch_variance(self) -> float:
@@ -772,6 +883,6 @@ class FusionEKF:
         return self.road_grade_variance
 
     def compensated_imu(self, specific_force, angular_rate) -> tuple:
-        """Bias-removed (specific force, angular rate), Eq. (22)."""
-        return (np.asarray(specific_force, float) - self._ba,
-                np.asarray(angular_rate, float) - self._bg)
+        """Bias-removed (specific force, angular rate), Eq. (22), rotated into base_link."""
+        return (self._Rm @ (np.asarray(specific_force, float) - self._ba),
+                self._Rm @ (np.asarray(angular_rate, float) - self._bg))

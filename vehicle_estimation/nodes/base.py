@@ -44,6 +44,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
+import numpy as np
 import rclpy
 import rclpy.clock
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -56,6 +57,7 @@ from rclpy.task import Future
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from vehicle_estimation import topics
+from vehicle_estimation.core.rotations import quat_to_rotmat
 from vehicle_estimation.vehicle import VehicleParams
 
 SYNC_TOPIC = "replay/sync"
@@ -615,10 +617,12 @@ class FusionImuBias:
 
     The fusion node publishes its accelerometer and gyro bias estimates on
     ``estimation/imu_bias`` (sensor_msgs/Imu: ``linear_acceleration`` = accelerometer bias,
-    ``angular_velocity`` = gyro bias, body frame, with their covariances) at a low rate: a bias
-    changes over minutes, so 10 Hz is plenty and costs downstream nodes almost nothing.
-    Without fusion (not started, not yet initialised) samples pass through uncorrected and
-    :attr:`valid` is False.
+    ``angular_velocity`` = gyro bias, both in the IMU's own frame, with their covariances;
+    ``orientation`` = the IMU mounting, imu_link -> base_link) at a low rate: a bias changes
+    over minutes, so 10 Hz is plenty and costs downstream nodes almost nothing.
+    :meth:`correct` removes the bias and rotates the sample into base_link. Without fusion
+    (not started, not yet initialised) samples pass through unchanged and :attr:`valid` is
+    False.
     """
 
     def __init__(self) -> None:
@@ -627,20 +631,25 @@ class FusionImuBias:
 
     @staticmethod
     def convert(msg: Any) -> tuple[float, Any] | None:
-        import numpy as np
         t = stamp_to_sec(msg.header.stamp)
         ba = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
         bg = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
         if not (np.all(np.isfinite(ba)) and np.all(np.isfinite(bg))):
             return None
-        return t, (ba, bg)
+        o = msg.orientation
+        q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+        norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else 0.0
+        # A publisher without a mounting leaves the quaternion at zero: identity.
+        mount = quat_to_rotmat(q / norm) if norm > 0.5 else np.eye(3)
+        return t, (ba, bg, mount)
 
     def correct(self, t: float, f: Any, w: Any) -> tuple[Any, Any]:
         entry = self.history.at(t)
         self.valid = entry is not None
         if entry is None:
             return f, w
-        return f - entry[0], w - entry[1]
+        ba, bg, mount = entry
+        return mount @ (f - ba), mount @ (w - bg)
 
     def clear(self) -> None:
         self.history.clear()

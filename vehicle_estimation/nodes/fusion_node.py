@@ -22,6 +22,7 @@ from sensor_msgs.msg import Imu, NavSatFix, NavSatStatus
 from vehicle_estimation import topics
 from vehicle_estimation.core.esekf import FusionConfig, FusionEKF
 from vehicle_estimation.core.geodesy import LocalTangentPlane
+from vehicle_estimation.core.rotations import rotmat_to_quat
 from vehicle_estimation.nodes.base import (
     EstimatorNode, ParameterError, companion, finite, run_node, sec_to_stamp)
 
@@ -37,16 +38,19 @@ class FusionNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("fusion", **node_kwargs)
         defaults = FusionConfig()
-        cfg: dict[str, float] = {}
-        # Expose the float fields of FusionConfig as fusion.* parameters (Tables 2-3 defaults).
+        cfg: dict[str, object] = {}
+        # Expose FusionConfig as fusion.* parameters (Tables 2-3 defaults); None-valued
+        # options (gates, cadence) keep their defaults.
         for name, value in vars(defaults).items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                continue
-            cfg[name] = self.declare_float(f"fusion.{name}", float(value),
-                                           f"FusionConfig.{name} (paper 003 Tables 2-3 default)")
+            doc = f"FusionConfig.{name} (paper 003 Tables 2-3 default where the paper gives one)"
+            if isinstance(value, bool):
+                cfg[name] = self.declare_bool(f"fusion.{name}", value, doc)
+            elif isinstance(value, (int, float)):
+                cfg[name] = type(value)(self.declare_float(f"fusion.{name}", float(value), doc))
+            elif isinstance(value, tuple):
+                cfg[name] = tuple(self.declare_float_array(f"fusion.{name}", value, doc))
         try:
-            config = FusionConfig(**{**vars(defaults), **{
-                k: (type(getattr(defaults, k))(v)) for k, v in cfg.items()}})
+            config = FusionConfig(**{**vars(defaults), **cfg})
             config.validate()
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"fusion.*: {exc}") from exc
@@ -150,7 +154,13 @@ class FusionNode(EstimatorNode):
         out = Imu()
         out.header.stamp = raw.header.stamp
         out.header.frame_id = self.base_frame
-        out.orientation_covariance[0] = -1.0
+        # orientation: the IMU mounting, imu_link -> base_link (REP-145 IMUs report in
+        # imu_link); consumers rotate bias-corrected samples with it.
+        o = out.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in rotmat_to_quat(ekf.mounting_rotation))
+        mount_cov = np.zeros((3, 3))
+        mount_cov[1:, 1:] = ekf.mounting_covariance
+        out.orientation_covariance = _flat3(mount_cov)
         a, w = out.linear_acceleration, out.angular_velocity
         a.x, a.y, a.z = (float(v) for v in ekf.accel_bias)
         w.x, w.y, w.z = (float(v) for v in ekf.gyro_bias)
@@ -205,6 +215,7 @@ class FusionNode(EstimatorNode):
                 "road grade [deg]": f"{math.degrees(ekf.road_grade):.3f}",
                 "accel bias [m/s^2]": np.array2string(ekf.accel_bias, precision=4),
                 "gyro bias [rad/s]": np.array2string(ekf.gyro_bias, precision=6),
+                "IMU mounting rpy [deg]": np.array2string(np.degrees(ekf.mounting_rpy), precision=3),
             })
         for k, v in getattr(ekf, "rejected", {}).items():
             values[f"filter rejected {k}"] = str(v)
