@@ -267,8 +267,63 @@ def test_mass_node_recovers_mass_from_drive_force(with_slope):
         h.close()
 
 
+def test_mass_node_ffrls_uses_braking_samples():
+    """FFRLS (paper 004 Eqs. 28-31): driving and braking pulses, brake torque on the wheels."""
+    mass_true = 1650.0
+    node = MassNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("method", value="ffrls"), Parameter("ffrls.rotating_inertia_correction", value=True)])
+    p = node.vehicle
+    h = Harness(node)
+    try:
+        inputs = [(JointState, topics.POWERTRAIN), (Imu, topics.IMU), (JointState, topics.JOINT_STATES),
+                  (TwistWithCovarianceStamped, topics.SPEED), (Vector3Stamped, topics.ROAD_SLOPE_STAMPED)]
+        for msg_type, topic in inputs:
+            h.probe.publisher_for(msg_type, topic)
+        out = h.probe.watch(Vector3Stamped, topics.MASS_STAMPED)
+        h.connect([topic for _, topic in inputs])
+        stream, v = [], 10.0
+        inertia = mass_true + p.wheel_inertia / p.wheel_radius ** 2
+        for i in range(8000):
+            ti = T0 + i * 0.005
+            a = 1.2 if (i // 400) % 2 == 0 else -1.0
+            v += a * 0.005
+            stream.append((topics.IMU, imu_msg(ti, [a, 0, G], [0, 0, 0])))
+            if i % 2:
+                continue
+            resist = 0.5 * p.air_density * p.drag_area * v * v + mass_true * p.gravity * p.rolling_resistance
+            drive = max(inertia * a + resist, 0.0)
+            brake = max(-(inertia * a + resist), 0.0) * p.wheel_radius   # total over the wheels [N m]
+            stream.append((topics.SPEED, speed_msg(ti, v)))
+            js = JointState()
+            sec_to_time(ti, js.header.stamp)
+            js.name = list(topics.WHEEL_JOINTS)
+            js.velocity = [v / p.wheel_radius] * 4
+            js.effort = [brake / 4.0] * 4
+            stream.append((topics.JOINT_STATES, js))
+            pt = JointState()
+            sec_to_time(ti, pt.header.stamp)
+            pt.name = [topics.ENGINE_JOINT, topics.DRIVE_JOINT]
+            pt.velocity = [math.nan, math.nan]
+            pt.effort = [math.nan, drive]
+            stream.append((topics.POWERTRAIN, pt))
+            if i % 10 == 0:
+                slope = Vector3Stamped()
+                sec_to_time(ti, slope.header.stamp)
+                slope.vector.x, slope.vector.y, slope.vector.z = 0.0, 1e-6, 1.0
+                stream.append((topics.ROAD_SLOPE_STAMPED, slope))
+        h.publish_stream(stream)
+        assert h.wait_for(lambda: len(out) > 50)
+        assert all(math.isfinite(m.vector.x) and m.vector.y >= 0 for m in out)
+        assert out[-1].vector.x == pytest.approx(mass_true, rel=0.02)
+        assert node.core.rejected["threshold"] >= 0
+        assert node.core.samples_used > 100     # braking windows count: about half of them
+    finally:
+        h.close()
+
+
 @pytest.mark.parametrize("module, override, name", [
     ("mass_node", "mass.forgetting_factor:=1.5", "forgetting_factor"),
+    ("mass_node", "method:=bogus", "method"),
     ("slope_node", "method:=bogus", "method"),
     ("state_node", "vehicle.mass:=-5.0", "vehicle.mass"),
     ("fusion_node", "fusion.mounting_rpy:=[0.0, 5.0, 0.0]", "mounting_rpy"),

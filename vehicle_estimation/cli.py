@@ -4,9 +4,10 @@ Subcommands::
 
     vehicle-estimation demo [--out DIR]                 simulate a drive, replay it, report
     vehicle-estimation simulate --scenario NAME --out BAG
-    vehicle-estimation run [--vehicle FILE] [--params FILE] [--namespace NS]
+    vehicle-estimation run [--vehicle FILE] [--params FILE ...] [--namespace NS]
     vehicle-estimation replay BAG --record OUT [--vehicle FILE] [--params FILE]
     vehicle-estimation report BAG [--out DIR]
+    vehicle-estimation experiment paper004 [--out DIR]   contrast experiment of paper 004
 
 ``run`` and ``replay`` start every node as its own OS process. Ctrl-C or SIGTERM stops them
 all; the children also die with the launcher if it is killed (no orphans).
@@ -26,15 +27,16 @@ from vehicle_estimation.paths import params_file
 
 def _node_group(args: argparse.Namespace, overrides=None, log_dir: Path | None = None):
     from vehicle_estimation.tools.processes import NodeGroup
-    files = [params_file(args.vehicle), params_file(args.params)]
+    files = [params_file(args.vehicle)] + [params_file(name) for name in (args.params or ["estimation"])]
     return NodeGroup(files, namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir)
 
 
 def _add_node_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicle", default="sedan_d_class",
                    help="vehicle params file or name in params/ (default: sedan_d_class)")
-    p.add_argument("--params", default="estimation",
-                   help="node params file or name in params/ (default: estimation)")
+    p.add_argument("--params", action="append", default=None,
+                   help="node params file or name in params/ (default: estimation); repeat to "
+                        "layer files, a later file overriding an earlier one")
     p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
 
 
@@ -124,6 +126,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return code if stats.lossless else 1
 
 
+def cmd_experiment(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools import experiment
+    from vehicle_estimation.tools.processes import NodeGroup
+
+    def node_group(params, overrides, log_dir):
+        files = [params_file(args.vehicle)] + [params_file(name) for name in params]
+        return NodeGroup(files, namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir)
+
+    out = Path(args.out or f"out/{args.name}")
+    return experiment.run_experiment(experiment.EXPERIMENTS[args.name], out, node_group,
+                                     duration_s=args.duration, namespace=args.namespace,
+                                     progress=not args.quiet)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vehicle-estimation", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -147,6 +163,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_node_options(p)
 
+    p = sub.add_parser("experiment", help="contrast experiment of a paper: one drive, two strategies")
+    from vehicle_estimation.tools.experiment import add_arguments
+    add_arguments(p)
+    p.add_argument("--vehicle", default="sedan_d_class",
+                   help="vehicle params file or name in params/ (default: sedan_d_class)")
+    p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
+
     p = sub.add_parser("report", help="metrics and plots of estimates against ground truth")
     p.add_argument("bag")
     p.add_argument("--out", default=None)
@@ -158,7 +181,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "simulate":
         return cmd_simulate(argparse.Namespace(), argv[1:])
     args = build_parser().parse_args(argv)
-    return {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report}[args.command](args)
+    commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
+                "experiment": cmd_experiment}
+    return commands[args.command](args)
 
 
 if __name__ == "__main__":

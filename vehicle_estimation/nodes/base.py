@@ -328,6 +328,36 @@ class EstimatorNode(Node):
         value = self._declare(name, [float(v) for v in default], descriptor)
         return [float(v) for v in value]
 
+    def declare_config(self, prefix: str, defaults: Any, source: str = "") -> Any:
+        """Declare every scalar, bool, str and tuple/list field of the dataclass instance
+        ``defaults`` as ``<prefix>.<field>`` and return a validated copy with the values.
+
+        Fields that are None or arrays keep their defaults (they are not ROS-parameter
+        shaped). ``validate()`` errors become a :class:`ParameterError` that names the field.
+        """
+        import dataclasses
+
+        values: dict[str, Any] = {}
+        for field in dataclasses.fields(defaults):
+            value = getattr(defaults, field.name)
+            name = f"{prefix}.{field.name}"
+            doc = f"{type(defaults).__name__}.{field.name}{' (' + source + ')' if source else ''}"
+            if isinstance(value, bool):
+                values[field.name] = self.declare_bool(name, value, doc)
+            elif isinstance(value, (int, float)):
+                values[field.name] = type(value)(self.declare_float(name, float(value), doc))
+            elif isinstance(value, str):
+                values[field.name] = self.declare_str(name, value, doc)
+            elif isinstance(value, (tuple, list)) and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+                values[field.name] = type(value)(self.declare_float_array(name, value, doc))
+        try:
+            config = dataclasses.replace(defaults, **values)
+            config.validate()
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"{prefix}.*: {exc}") from exc
+        return config
+
     def declare_vehicle(self) -> VehicleParams:
         """Declare ``vehicle.*`` (ranges in :data:`VEHICLE_PARAM_RANGES`) and build the params."""
         defaults = VehicleParams()

@@ -24,7 +24,7 @@ from vehicle_estimation.core.esekf import FusionConfig, FusionEKF
 from vehicle_estimation.core.geodesy import LocalTangentPlane
 from vehicle_estimation.core.rotations import rotmat_to_quat
 from vehicle_estimation.nodes.base import (
-    EstimatorNode, ParameterError, companion, finite, run_node, sec_to_stamp)
+    EstimatorNode, companion, finite, run_node, sec_to_stamp)
 
 FUSION_GRADE = topics.FUSION_GRADE
 
@@ -37,23 +37,8 @@ MAX_SPEED = 120.0            # m/s
 class FusionNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("fusion", **node_kwargs)
-        defaults = FusionConfig()
-        cfg: dict[str, object] = {}
-        # Expose FusionConfig as fusion.* parameters (Tables 2-3 defaults); None-valued
-        # options (gates, cadence) keep their defaults.
-        for name, value in vars(defaults).items():
-            doc = f"FusionConfig.{name} (paper 003 Tables 2-3 default where the paper gives one)"
-            if isinstance(value, bool):
-                cfg[name] = self.declare_bool(f"fusion.{name}", value, doc)
-            elif isinstance(value, (int, float)):
-                cfg[name] = type(value)(self.declare_float(f"fusion.{name}", float(value), doc))
-            elif isinstance(value, tuple):
-                cfg[name] = tuple(self.declare_float_array(f"fusion.{name}", value, doc))
-        try:
-            config = FusionConfig(**{**vars(defaults), **cfg})
-            config.validate()
-        except (TypeError, ValueError) as exc:
-            raise ParameterError(f"fusion.*: {exc}") from exc
+        # FusionConfig as fusion.* parameters (Tables 2-3 defaults where the paper gives one).
+        config = self.declare_config("fusion", FusionConfig(), "paper 003 Tables 2-3 where given")
         self.config = config
         self.odometry_rate = self.declare_float(
             "odometry_rate_hz", 50.0, "Rate of estimation/odometry and the grade [Hz]", 0.1, 1000.0)

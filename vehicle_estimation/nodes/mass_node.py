@@ -1,16 +1,25 @@
-"""Mass node: recursive least squares with forgetting on the longitudinal dynamics.
+"""Mass node: least squares with forgetting on the longitudinal dynamics.
 
-Method (parameter ``method``): ``rls``, paper 003 Secs. 2-4 (Eqs. 4-11). The propulsion
-force comes, in this order, from ``drive`` (tractive force at the wheels, if the vehicle
-reports it), from engine torque x gearing (gear reported, or predicted from the engine to
-vehicle speed ratio, Eqs. 10-11), or from engine load and speed through the torque
-regression of Eq. 49 (coefficients in ``mass.torque_regression``). With none of them the
-node keeps publishing its prior with a large variance and says so in ``/diagnostics``.
+Methods (parameter ``method``):
+
+* ``rls``: paper 003 Secs. 2-4 (Eqs. 4-11), parameters ``mass.*``. Driving samples only
+  (a > 0, no brake). The propulsion force comes, in this order, from ``drive`` (tractive
+  force at the wheels, if the vehicle reports it), from engine torque x gearing (gear
+  reported, or predicted from the engine to vehicle speed ratio, Eqs. 10-11), or from engine
+  load and speed through the torque regression of Eq. 49 (coefficients in
+  ``mass.torque_regression``).
+* ``ffrls``: paper 004 Sec. 6 (Eqs. 28-31), parameters ``ffrls.*``: the braking torque is in
+  the regression, so braking and down-hill samples count too, and the threshold judgment of
+  Eq. 31 passes only well-excited samples. Drive force from ``drive`` or engine torque.
+
+With no propulsion source the node keeps publishing its prior with a large variance and says
+so in ``/diagnostics``.
 
 Subscribes (sensor-data QoS): ``vehicle/powertrain`` (the trigger), ``vehicle/joint_states``
 (brake torque), ``imu/data`` (longitudinal specific force), ``vehicle/speed`` (fallback speed).
-From other nodes: ``estimation/imu`` (fusion bias), ``estimation/odometry`` (speed),
-``estimation/road_slope_stamped``. The RLS runs at ``update_rate_hz`` (4 Hz, the CAN rate of
+From other nodes: ``estimation/imu_bias`` (fusion bias), ``estimation/odometry`` (speed),
+``estimation/vehicle_state`` (speed and acceleration when ``speed_source`` /
+``accel_source`` say so: paper 004 Fig. 1, mass <- state), ``estimation/road_slope_stamped``. The RLS runs at ``update_rate_hz`` (4 Hz, the CAN rate of
 paper 003) on the means of every input over the period (see :class:`UpdateWindow`); the
 longitudinal acceleration is the mean bias-compensated specific force minus g·sin(slope).
 
@@ -29,14 +38,15 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from vehicle_estimation import topics
+from vehicle_estimation.core.mass_ffrls import FFRLSMassConfig, FFRLSMassEstimator
 from vehicle_estimation.core.mass_rls import LongitudinalMassEstimator, MassRLSConfig
 from vehicle_estimation.nodes.base import (
-    EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
+    EstimatorNode, FusionImuBias, UpstreamHistory, companion, companion_value,
     run_node)
 from vehicle_estimation.nodes.conversions import (
     MalformedMessage, chassis_reading, forward_speed_entry, imu_arrays, powertrain_reading)
 
-METHODS = ("rls",)
+METHODS = ("rls", "ffrls")
 STALE_AFTER_S = 1.0
 
 
@@ -46,9 +56,11 @@ class UpdateWindow:
     Averaging the force signals and the IMU acceleration over the *same* window filters both
     sides of Eq. 4 alike, so a transient cannot appear on one side before the other, and it
     keeps the forgetting factor's memory in seconds what the paper's was (lambda = 0.9995 at
-    4 Hz: about 500 s). Brake torque takes the maximum (one braking sample spoils the window),
-    the gear the last value, and a gear change inside the window is passed on as NaN so the
-    core treats the window as a shift.
+    4 Hz: about 500 s). Brake torque: the maximum for ``rls`` (one braking sample spoils the
+    window) and the mean for ``ffrls`` (it enters the regression). The gear takes the last
+    value, and a gear change inside the window is passed on as NaN so the core treats the
+    window as a shift. Speed samples of the vehicle-state node are kept with their stamps so
+    that their least-squares slope can serve as the acceleration.
     """
 
     FIELDS = ("vx", "slope", "drive_force", "engine_torque", "engine_speed", "engine_load")
@@ -64,7 +76,11 @@ class UpdateWindow:
         self.accel_n = 0
         self.wheel_t: list[float] = []
         self.wheel_v: list[float] = []
+        self.state_t: list[float] = []
+        self.state_v: list[float] = []
         self.brake = 0.0
+        self.brake_sum = 0.0
+        self.brake_n = 0
         self.gears: set[float] = set()
         self.slope_trusted = True
 
@@ -80,6 +96,8 @@ class UpdateWindow:
                 self.sums[key] += value
                 self.counts[key] += 1
         self.brake = max(self.brake, brake)
+        self.brake_sum += brake
+        self.brake_n += 1
         if math.isfinite(gear):
             self.gears.add(gear)
 
@@ -87,15 +105,33 @@ class UpdateWindow:
         self.wheel_t.append(t)
         self.wheel_v.append(v)
 
+    def add_state_speed(self, t: float, v: float) -> None:
+        if not self.state_t or t > self.state_t[-1]:
+            self.state_t.append(t)
+            self.state_v.append(v)
+
+    @staticmethod
+    def _slope(t_list: list[float], v_list: list[float]) -> float:
+        if len(t_list) < 3:
+            return math.nan
+        t = np.asarray(t_list) - t_list[0]
+        if t[-1] <= 0.0:
+            return math.nan
+        return float(np.polyfit(t, np.asarray(v_list), 1)[0])
+
     @property
     def wheel_accel(self) -> float:
         """Least-squares slope of the undriven wheels' speed over the window [m/s^2]."""
-        if len(self.wheel_t) < 3:
-            return math.nan
-        t = np.asarray(self.wheel_t) - self.wheel_t[0]
-        if t[-1] <= 0.0:
-            return math.nan
-        return float(np.polyfit(t, np.asarray(self.wheel_v), 1)[0])
+        return self._slope(self.wheel_t, self.wheel_v)
+
+    @property
+    def state_accel(self) -> float:
+        """Least-squares slope of the vehicle-state node's vx over the window [m/s^2]."""
+        return self._slope(self.state_t, self.state_v)
+
+    @property
+    def brake_mean(self) -> float:
+        return self.brake_sum / self.brake_n if self.brake_n else 0.0
 
     def mean(self, key: str) -> float:
         return self.sums[key] / self.counts[key] if self.counts[key] else math.nan
@@ -118,29 +154,22 @@ class MassNode(EstimatorNode):
         self.update_rate = self.declare_float(
             "update_rate_hz", 4.0,
             "RLS update rate; inputs are averaged over each period (paper 003: 4 Hz CAN)", 0.1, 1000.0)
-        defaults = MassRLSConfig()
-        overrides = {}
-        for name, value in vars(defaults).items():
-            if isinstance(value, bool):
-                overrides[name] = self.declare_bool(f"mass.{name}", value, f"MassRLSConfig.{name}")
-            elif isinstance(value, (int, float)):
-                overrides[name] = type(value)(self.declare_float(
-                    f"mass.{name}", float(value), f"MassRLSConfig.{name} (paper 003 default)"))
-            elif isinstance(value, (list, tuple)):
-                overrides[name] = type(value)(self.declare_float_array(
-                    f"mass.{name}", list(value), f"MassRLSConfig.{name}"))
-        try:
-            self.config = MassRLSConfig(**{**vars(defaults), **overrides})
-            self.config.validate()
-        except (TypeError, ValueError) as exc:
-            raise ParameterError(f"mass.*: {exc}") from exc
-        self.core = LongitudinalMassEstimator(self.vehicle, self.config)
+        if self.method == "rls":
+            self.config = self.declare_config("mass", MassRLSConfig(), "paper 003 default where given")
+            self.core = LongitudinalMassEstimator(self.vehicle, self.config)
+        else:
+            self.config = self.declare_config("ffrls", FFRLSMassConfig(), "paper 004 default where given")
+            self.core = FFRLSMassEstimator(self.vehicle, self.config)
         self.bias = FusionImuBias()
         self.window = UpdateWindow()
         self.have_imu = False
         self.accel_source = self.declare_str(
             "accel_source", "auto", "Longitudinal acceleration for the RLS (see _window_accel)",
-            ("auto", "wheel_speed", "imu"))
+            ("auto", "wheel_speed", "imu", "vehicle_state"))
+        self.speed_source = self.declare_str(
+            "speed_source", "fusion",
+            "Speed for the regression: fusion odometry or the vehicle-state node, each falling "
+            "back on the CAN speed", ("fusion", "vehicle_state"))
         self.require_slope = self.declare_bool(
             "require_slope", True,
             "Update only with a slope estimate from the slope node (else assume a level road)")
@@ -151,6 +180,7 @@ class MassNode(EstimatorNode):
         self.undriven_wheels = np.array(axle)
         self.slope = UpstreamHistory()
         self.odom_speed = UpstreamHistory()
+        self.state_speed = UpstreamHistory()
         self.can_speed: tuple[float, float] | None = None
         self.brake_torque = 0.0
         self.brake_t = -math.inf
@@ -163,7 +193,11 @@ class MassNode(EstimatorNode):
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         self.subscribe_imu_bias(self.bias)
-        self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
+        if self.speed_source == "fusion":
+            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
+        if "vehicle_state" in (self.speed_source, self.accel_source):
+            self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
+                                    forward_speed_entry)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
 
     # -------------------------------------------------------------- inputs
@@ -212,6 +246,10 @@ class MassNode(EstimatorNode):
             self.window.slope_trusted = False
         self.set_missing("vehicle speed", speed is None)
         window = self.window
+        if self.accel_source == "vehicle_state":
+            item = self.state_speed.at(t)
+            if item is not None and t - item[0] <= STALE_AFTER_S:
+                window.add_state_speed(*item)
         if speed is not None:
             brake = self.brake_torque if t - self.brake_t <= STALE_AFTER_S else 0.0
             window.add(t, brake, pt.gear, vx=speed, slope=slope_item.value if slope_ok else 0.0,
@@ -228,7 +266,7 @@ class MassNode(EstimatorNode):
                                engine_torque=window.mean("engine_torque"),
                                engine_speed=window.mean("engine_speed"),
                                engine_load=window.mean("engine_load"), gear=window.gear,
-                               brake_torque=window.brake)
+                               brake_torque=window.brake if self.method == "rls" else window.brake_mean)
             window.clear()
         if t - self._last_pub >= 1.0 / self.rate - 1e-9:
             self._last_pub = t
@@ -241,8 +279,13 @@ class MassNode(EstimatorNode):
         body pitch, so neither the accelerometer bias nor the suspension's squat and dive
         (which tilt the IMU by ~0.1 deg per m/s^2) reach the mass. ``imu``: paper 003's choice,
         the mean bias-compensated specific force minus g sin(slope); needs the fusion's bias.
-        ``auto`` takes the wheels when they report and the IMU otherwise.
+        ``auto`` takes the wheels when they report and the IMU otherwise. ``vehicle_state``:
+        the slope of the vehicle-state node's vx (paper 004 Fig. 1: mass <- state).
         """
+        if self.accel_source == "vehicle_state":
+            a = window.state_accel
+            self.set_missing("vehicle state speed", not math.isfinite(a))
+            return a
         if self.accel_source in ("wheel_speed", "auto"):
             a = window.wheel_accel
             self.set_missing("undriven wheel speeds", not math.isfinite(a) and self.accel_source == "wheel_speed")
@@ -255,7 +298,7 @@ class MassNode(EstimatorNode):
         return window.accel - self.vehicle.gravity * math.sin(slope)
 
     def _speed_at(self, t: float) -> float | None:
-        item = self.odom_speed.at(t)
+        item = (self.odom_speed if self.speed_source == "fusion" else self.state_speed).at(t)
         if item is not None and t - item[0] <= STALE_AFTER_S:
             return item[1]
         if self.can_speed is not None and t - self.can_speed[0] <= STALE_AFTER_S:
@@ -280,6 +323,7 @@ class MassNode(EstimatorNode):
         self.have_imu = False
         self.slope.clear()
         self.odom_speed.clear()
+        self.state_speed.clear()
         self.can_speed = None
         self._last_pub = -math.inf
 

@@ -366,6 +366,27 @@ WANTED = ("estimation/mass", topics.GT_MASS, "estimation/road_slope", topics.GT_
           topics.GT_SIDESLIP, "estimation/odometry", topics.GT_ODOMETRY)
 
 
+GROUP_BUILDERS: dict[str, Callable] = {
+    "mass": _mass_group, "slope": _slope_group, "vehicle_state": _state_group, "fusion": _fusion_group}
+PLOTTERS: dict[str, Callable] = {
+    "mass": _plot_mass, "slope": _plot_slope, "vehicle_state": _plot_state, "fusion": _plot_fusion}
+
+
+def compute_groups(data: dict[str, Series], warmup_s: float = DEFAULT_WARMUP_S) -> tuple[dict, dict]:
+    """Metrics per group (``{"status": "ok", ...}`` or ``{"status": "no data"}``) and the
+    paired time series behind them (``{"t", "est", "true"}`` per quantity) for plots."""
+    groups: dict[str, Any] = {}
+    series: dict[str, Any] = {}
+    for name, build in GROUP_BUILDERS.items():
+        res, plots = build(data, warmup_s)
+        if res is None:
+            groups[name] = {"status": "no data"}
+            continue
+        groups[name] = {"status": "ok", **res}
+        series[name] = plots
+    return groups, series
+
+
 def make_report(bag_path: str | Path, out_dir: str | Path, *, warmup_s: float = DEFAULT_WARMUP_S,
                 print_table: bool = True) -> dict:
     """Compute the metrics of one bag, write ``report.json`` and PNGs to ``out_dir``.
@@ -375,21 +396,8 @@ def make_report(bag_path: str | Path, out_dir: str | Path, *, warmup_s: float = 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = read_bag(bag_path, WANTED)
-    groups: dict[str, Any] = {}
-    figures: list[str] = []
-    builders: list[tuple[str, Callable, Callable]] = [
-        ("mass", _mass_group, _plot_mass),
-        ("slope", _slope_group, _plot_slope),
-        ("vehicle_state", _state_group, _plot_state),
-        ("fusion", _fusion_group, _plot_fusion),
-    ]
-    for name, build, plot in builders:
-        res, plots = build(data, warmup_s)
-        if res is None:
-            groups[name] = {"status": "no data"}
-            continue
-        groups[name] = {"status": "ok", **res}
-        figures.append(plot(plots, out))
+    groups, series = compute_groups(data, warmup_s)
+    figures = [PLOTTERS[name](series[name], out) for name in groups if name in series]
     report = _clean({
         "bag": Path(bag_path).name,
         "warmup_s": float(warmup_s),
