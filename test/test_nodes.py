@@ -172,6 +172,35 @@ def test_slope_node_passes_the_fusion_grade():
         h.close()
 
 
+@pytest.mark.parametrize("method", ["cubic_prediction", "classical"])
+def test_slope_node_observers_find_a_grade(method):
+    """Paper 004 observers on IMU + CAN speed: a 4 % grade, gentle acceleration, 30 s."""
+    node = SlopeNode(parameter_overrides=vehicle_overrides() + [Parameter("method", value=method)])
+    h = Harness(node)
+    try:
+        h.probe.publisher_for(Imu, topics.IMU)
+        h.probe.publisher_for(TwistWithCovarianceStamped, topics.SPEED)
+        out = h.probe.watch(Vector3Stamped, topics.ROAD_SLOPE_STAMPED)
+        h.connect([topics.IMU, topics.SPEED])
+        grade, a, v = math.atan(0.04), 0.3, 8.0
+        squat = node.vehicle.pitch_gain * a     # the body pitch the node takes out
+        stream = []
+        for i in range(6000):
+            ti = T0 + i * 0.005
+            v += a * 0.005
+            body = grade + squat
+            stream.append((topics.IMU, imu_msg(ti, [a + G * math.sin(body), 0, G * math.cos(body)], [0, 0, 0])))
+            if i % 2 == 0:
+                stream.append((topics.SPEED, speed_msg(ti, v)))
+        h.publish_stream(stream)
+        assert h.wait_for(lambda: len(out) > 100 and out[-1].header.stamp.sec >= int(T0) + 29)
+        assert all(math.isfinite(m.vector.x) and m.vector.y > 0 for m in out)
+        assert out[-1].vector.x == pytest.approx(grade, abs=math.radians(0.15))
+        assert out[-1].vector.z == 1.0      # converged
+    finally:
+        h.close()
+
+
 def test_state_node_estimates_speed_from_wheels_and_imu():
     node = StateNode(parameter_overrides=vehicle_overrides())
     h = Harness(node)

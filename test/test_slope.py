@@ -121,3 +121,234 @@ def test_pitch_grade_lwma_delay():
 def test_registry():
     assert SLOPE_METHODS["classical"] is ClassicalSlopeObserver
     assert SLOPE_METHODS["fusion_pitch"] is PitchGradeSlope
+    assert SLOPE_METHODS["cubic_prediction"] is CubicPredictionSlopeObserver
+
+
+# --------------------------------------------------------------------------------------
+# cubic_prediction: slope prediction model + cubic observer (paper 004 Sec. 5, Eqs. 15-27)
+# --------------------------------------------------------------------------------------
+
+from vehicle_estimation.core.slope import (  # noqa: E402
+    PAPER_LUENBERGER_GAIN,
+    CubicPredictionSlopeConfig,
+    CubicPredictionSlopeObserver,
+    SlopePredictionModel,
+    cubic_observer_design,
+    luenberger_gain_for_poles,
+)
+
+
+def _noise_free_drive(observer, theta_of_t, seconds, dt=0.005):
+    """Noise-free signals at 200 Hz exactly as Eq. 21 models them (``g theta``, not
+    ``g sin(theta)``, so the error is the observer's alone); returns t, slope error [rad]."""
+    vx, t_out, err = 15.0, [], []
+    for k in range(int(round(seconds / dt))):
+        t = k * dt
+        a = 0.5 * math.sin(0.5 * t)
+        vx += a * dt
+        th = theta_of_t(t)
+        observer.step(t, a + G * th, vx)
+        t_out.append(t)
+        err.append(observer.slope - th)
+    return np.array(t_out), np.array(err)
+
+
+def _best_shift(t, est, truth, mask):
+    """Time shift [s] that best aligns the estimate with the truth (positive: estimate late)."""
+    shifts = np.arange(-1.0, 3.0, 0.01)
+    cost = [np.mean((est[mask] - np.interp(t[mask] - s, t, truth)) ** 2) for s in shifts]
+    return float(shifts[int(np.argmin(cost))])
+
+
+@pytest.mark.parametrize("gain", [PAPER_LUENBERGER_GAIN, CubicPredictionSlopeConfig().luenberger_gain])
+def test_cubic_design_satisfies_eq27(gain):
+    kappa, gamma = 1.5, 0.7
+    d = cubic_observer_design(gain, G, kappa, gamma)
+    # Eq. 27, first: (A - L C)^T P + P (A - L C) = -Q_c = -I < 0, with P = P^T > 0
+    assert np.allclose(d.lyapunov_linear, -np.eye(2), atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(d.P) > 0.0)
+    # N_c = -gamma P^-1 C^T kappa_c (text after Eq. 27)
+    assert np.allclose(d.P @ d.N, -gamma * kappa * np.array([1.0, 0.0]))
+    # Eq. 27, second: = -2 gamma kappa C^T C, negative semi-definite (rank 1: strict < 0 is
+    # impossible for a scalar output, and not needed, see below)
+    assert np.allclose(d.lyapunov_cubic, -2.0 * gamma * kappa * np.outer([1, 0], [1, 0]), atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(d.lyapunov_cubic) <= 1e-12)
+    # Eq. 26 on random errors: V_c' = e^T(...)e + (e^T C^T kappa C e) e^T(P N C + C^T N^T P) e < 0
+    rng = np.random.default_rng(0)
+    for e in rng.normal(size=(500, 2)) * [1.0, 0.05]:
+        ce = e[0]
+        vdot = e @ d.lyapunov_linear @ e + kappa * ce * ce * (e @ d.lyapunov_cubic @ e)
+        assert vdot < 0.0
+
+
+def test_eq25_error_dynamics_converge_faster_with_cubic_term():
+    """Integrate Eq. 25 (RK4): V_c = e^T P_c e falls monotonically to ~0, faster with kappa_c > 0."""
+    gain = CubicPredictionSlopeConfig().luenberger_gain
+
+    def simulate(kappa, e0, seconds=6.0, h=1e-3):
+        d = cubic_observer_design(gain, G, kappa, 1.0)
+        design0 = cubic_observer_design(gain, G, 1.0, 1.0)   # one P_c to compare V on
+
+        def f(e):
+            ce = e[0]
+            return d.A_cl @ e + kappa * ce * ce * d.N * ce
+
+        e, V = np.array(e0, float), []
+        for _ in range(int(seconds / h)):
+            V.append(e @ design0.P @ e)
+            k1 = f(e)
+            k2 = f(e + 0.5 * h * k1)
+            k3 = f(e + 0.5 * h * k2)
+            k4 = f(e + h * k3)
+            e = e + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return np.array(V)
+
+    for e0 in ([1.0, 0.0], [0.0, math.radians(5.0)], [-2.0, math.radians(-8.0)]):
+        v_lin, v_cub = simulate(0.0, e0), simulate(3.0, e0)
+        for V in (v_lin, v_cub):
+            assert np.all(np.diff(V) <= 1e-12)              # Lyapunov: never increases
+            assert V[-1] < 1e-4 * V[0]                      # converges
+        assert v_cub[500] < v_lin[500]                      # cubic term: faster descent (0.5 s)
+
+
+@pytest.mark.parametrize("config", [CubicPredictionSlopeConfig(initial_slope=0.0, gravity=G),
+                                    CubicPredictionSlopeConfig.paper_gain(initial_slope=0.0, gravity=G)],
+                         ids=["default_gain", "paper_gain"])
+@pytest.mark.parametrize("profile", ["constant", "ramp"])
+@pytest.mark.parametrize("start_error_deg", [5.0, -5.0])
+def test_cubic_prediction_error_decays_from_wrong_start(config, profile, start_error_deg):
+    """Discrete observer (Eqs. 24 + prediction model), exact signals, 5 deg off at the start."""
+    th0 = math.radians(start_error_deg)
+    if profile == "constant":
+        theta = lambda t: th0                                      # noqa: E731
+    else:
+        theta = lambda t: th0 + 0.004 * t                          # noqa: E731
+    obs = CubicPredictionSlopeObserver(config)
+    t, err = _noise_free_drive(obs, theta, 25.0)
+    envelope = [np.abs(err[(t >= a) & (t < a + 2.5)]).max() for a in np.arange(0.0, 25.0, 2.5)]
+    assert envelope[0] > math.radians(4.0)
+    assert envelope[-1] < math.radians(0.05)
+    # the error decays: every later 2.5-s window peaks well below the first ones
+    assert max(envelope[4:]) < 0.25 * envelope[0]
+    assert np.all(np.isfinite(err))
+
+
+def test_prediction_model_recovers_road_curvature():
+    """Eqs. 15-20: points on a parabolic road, theta = a1 + 2 a2 x, give 2 a2 and u2 = 2 a2 v cos."""
+    a1, two_a2, v = 0.02, 0.0015, 12.0
+    model = SlopePredictionModel(window_s=3.0, sample_period_s=0.05, min_points=5, min_span_m=2.0,
+                                 max_curvature=0.01)
+    x = 0.0
+    for k in range(400):
+        th = math.atan(a1 + two_a2 * x)
+        model.update(k * 0.01, v, th)
+        x += 0.01 * v * math.cos(th)
+    # atan(.) ~ linear for these small slopes: 2 a2 to within 1 %
+    assert model.curvature == pytest.approx(two_a2, rel=0.01)
+    th = math.atan(a1 + two_a2 * x)
+    assert model.slope_rate(v, th) == pytest.approx(model.curvature * v * math.cos(th), rel=1e-12)
+    literal = SlopePredictionModel(3.0, 0.05, 5, 2.0, 0.01, rate_mode="as_printed")
+    literal.curvature = two_a2
+    assert literal.slope_rate(v, th) == two_a2
+    # standstill: no travelled distance, no rate; a wild slope history is clamped
+    still = SlopePredictionModel(3.0, 0.05, 5, 2.0, 0.01)
+    for k in range(400):
+        still.update(k * 0.01, 0.0, 0.1 * math.sin(k))
+    assert still.curvature == 0.0 and still.slope_rate(0.0, 0.0) == 0.0
+    wild = SlopePredictionModel(3.0, 0.05, 5, 2.0, 0.01)
+    for k in range(400):
+        wild.update(k * 0.01, 10.0, 0.05 * k * 0.01 * 10.0)   # 0.05 rad/m
+    assert wild.curvature == pytest.approx(0.01)
+
+
+def test_cubic_prediction_tracks_ramp_with_less_lag_than_classical():
+    rate = 0.005  # rad/s, 0 -> 0.06 rad between 5 s and 17 s
+    profile = lambda tt: min(rate * max(tt - 5.0, 0.0), 0.06)      # noqa: E731
+    lags = {}
+    for seed in (1, 2, 3):
+        for name, obs in (("classical", ClassicalSlopeObserver()),
+                          ("classical_same_gain", ClassicalSlopeObserver(ClassicalSlopeConfig(
+                              gain_mode="luenberger",
+                              luenberger_gain=CubicPredictionSlopeConfig().luenberger_gain))),
+                          ("cubic_prediction", CubicPredictionSlopeObserver())):
+            t, est, truth = _run(obs, profile, 30.0, seed=seed)
+            lags.setdefault(name, []).append(_best_shift(t, est, truth, (t > 4.0) & (t < 25.0)))
+    lag = {k: float(np.mean(v)) for k, v in lags.items()}
+    print("ramp lag [s]:", lag)
+    assert lag["classical"] > 0.5
+    assert lag["classical_same_gain"] > 0.25            # theory: L1 / (-L2 g) = 0.47 s
+    assert abs(lag["cubic_prediction"]) < 0.2
+    assert lag["cubic_prediction"] < lag["classical_same_gain"] - 0.2
+    assert lag["cubic_prediction"] < lag["classical"] - 0.4
+
+
+def test_cubic_prediction_variance_is_consistent():
+    """Noise as the config assumes (sigma_a = 0.2, sigma_v = 0.05): the propagated std of the
+    fixed-gain observer matches the actual scatter within a factor 1.5, and converges."""
+    obs = CubicPredictionSlopeObserver()
+    t, est, truth = _run(obs, lambda _t: 0.03, 40.0, seed=3)
+    actual = np.std(est[t > 15.0] - truth[t > 15.0])
+    reported = math.sqrt(obs.variance)
+    assert actual / 1.5 < reported < actual * 1.5
+    assert obs.converged
+    assert abs(np.mean(est[t > 15.0]) - 0.03) < 0.002
+
+
+def test_cubic_prediction_nan_inputs_and_rejections():
+    obs = CubicPredictionSlopeObserver()
+    nan = float("nan")
+    assert obs.step(0.0, 0.0, 10.0)
+    assert not obs.step(0.005, nan, 10.0)
+    assert not obs.step(0.005, 0.0, 10.0, yaw_rate=nan)
+    assert not obs.step(0.005, 0.0, 10.0, vy=nan)
+    assert not obs.step(nan, 0.0, 10.0)
+    assert not obs.step(0.0, 0.0, 10.0)                              # stamp not increasing
+    for k in range(1, 400):                                         # long stretch without speed
+        obs.step(k * 0.005, 0.3, nan, vx_variance=nan)
+    assert obs.rejected["nonfinite_input"] == 4 and obs.rejected["stamp_not_increasing"] == 1
+    assert obs.rejected["nonfinite_speed"] == 399
+    for k in range(400, 1200):
+        assert obs.step(k * 0.005, 0.3 + 0.1 * math.sin(k), 10.0 + 0.01 * math.cos(k),
+                        vx_dot=nan, yaw_rate=0.01, vy=0.1, vx_variance=nan)
+    for value in (obs.slope, obs.variance, obs.speed, obs.slope_rate):
+        assert math.isfinite(value)
+    # a gap re-initialises and empties the fit window
+    assert obs.step(100.0, 0.0, 10.0) and obs.reinitialisations == 1
+    assert obs.step(100.005, 0.0, 10.0) and obs.slope_rate == 0.0
+    # a 10 m/s speed glitch: the capped cubic step stays bounded and finite
+    obs.step(100.01, 0.0, 20.0)
+    assert abs(obs.speed - 10.0) <= obs.config.cubic_max_step_gain * 10.0 + 0.1
+    assert math.isfinite(obs.slope)
+
+
+def test_cubic_prediction_step_signature_matches_classical():
+    import inspect
+    assert (list(inspect.signature(CubicPredictionSlopeObserver.step).parameters)
+            == list(inspect.signature(ClassicalSlopeObserver.step).parameters))
+    obs = SLOPE_METHODS["cubic_prediction"]()
+    assert obs.step(0.0, 0.0, 15.0, yaw_rate=0.0)      # the node's call
+    assert not obs.converged and obs.variance > 0.0
+
+
+def test_cubic_prediction_config_validate_names_field():
+    for field, value in (("fit_window_s", 0.0), ("fit_sample_period_s", -1.0), ("fit_min_points", 2),
+                         ("fit_min_span_m", float("nan")), ("max_slope_curvature", 0.0),
+                         ("rate_mode", "x"), ("prediction_warmup_s", -1.0),
+                         ("cubic_max_step_gain", 1.5), ("cubic_kappa", -1.0), ("gain_mode", "y"),
+                         ("luenberger_gain", (1.0, 2.0))):
+        with pytest.raises(ValueError, match=field):
+            CubicPredictionSlopeConfig(**{field: value}).validate()
+        with pytest.raises(ValueError, match=field):
+            CubicPredictionSlopeObserver(CubicPredictionSlopeConfig(**{field: value}))
+    with pytest.raises(ValueError, match="fit_window_s"):
+        CubicPredictionSlopeConfig(fit_window_s=0.1, fit_sample_period_s=0.05).validate()
+
+
+def test_gain_for_poles_and_paper_gain():
+    L = luenberger_gain_for_poles(3.0, 0.7, G)
+    d = cubic_observer_design(L, G)
+    assert np.allclose(sorted(np.abs(np.linalg.eigvals(d.A_cl))), [3.0, 3.0])
+    assert np.allclose(-np.linalg.eigvals(d.A_cl).real, 2.1)
+    assert CubicPredictionSlopeConfig.paper_gain().luenberger_gain == (1.0, -2.0)
+    assert CubicPredictionSlopeConfig().luenberger_gain == pytest.approx(luenberger_gain_for_poles(3.0, 0.7, 9.8),
+                                                                        abs=0.01)

@@ -120,3 +120,12 @@ def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
     t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
     v = msg.twist.twist.linear.x
     return (t, (t, v)) if math.isfinite(v) else None
+
+
+def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
+    """``(stamp, (stamp, vx, vy))`` of a TwistWithCovarianceStamped (the vehicle-state
+    node's output), for a history."""
+    stamp = msg.header.stamp
+    t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
+    vx, vy = msg.twist.twist.linear.x, msg.twist.twist.linear.y
+    return (t, (t, vx, vy)) if math.isfinite(vx) and math.isfinite(vy) else None

@@ -4,12 +4,16 @@ Methods (parameter ``method``):
 
 * ``fusion_pitch`` (default): the grade of paper 003 Sec. 7.2, i.e. the pitch of the fusion
   node's error-state EKF (``estimation/fusion/road_grade``), smoothed as paper 003 Sec. 7.1 does.
-* ``classical``: the observer of paper 004 Eqs. 32-33 on the bias-compensated longitudinal
-  specific force and the vehicle speed (θ̇ = 0 slope model).
+* ``cubic_prediction``: paper 004 Sec. 5, the slope prediction model (Eqs. 15-20: the slope
+  rate from a fit of recent slopes over travelled distance) with the cubic observer
+  (Eqs. 21-27), on the bias-compensated longitudinal specific force and the vehicle speed.
+* ``classical``: the contrast of paper 004 Eqs. 32-33 (θ̇ = 0 slope model).
+
+Each method's tuning is declared as ``<method>.*`` parameters (its config dataclass).
 
 Subscribes: ``imu/data`` (sensor-data QoS, the trigger), ``vehicle/speed`` (sensor-data QoS,
 speed fallback), ``estimation/imu`` (fusion bias), ``estimation/fusion/road_grade``,
-``estimation/vehicle_state`` (speed from the state node, paper 004 Fig. 1: slope <- state).
+``estimation/vehicle_state`` (vx and vy from the state node, paper 004 Fig. 1: slope <- state).
 Publishes ``estimation/road_slope`` (std_msgs/Float64, rad, +uphill) and
 ``estimation/road_slope_stamped`` (geometry_msgs/Vector3Stamped: x = slope, y = variance,
 z = converged 1/0).
@@ -29,9 +33,12 @@ from vehicle_estimation.core import slope as slope_core
 from vehicle_estimation.nodes.base import (
     EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
     run_node)
-from vehicle_estimation.nodes.conversions import forward_speed_entry, imu_arrays
+from vehicle_estimation.nodes.conversions import forward_speed_entry, imu_arrays, planar_velocity_entry
 
 METHODS = tuple(slope_core.SLOPE_METHODS)
+CONFIGS = {"classical": slope_core.ClassicalSlopeConfig,
+           "cubic_prediction": slope_core.CubicPredictionSlopeConfig,
+           "fusion_pitch": slope_core.PitchGradeConfig}
 #: Variance published while no estimate exists yet: a 10 deg 1-sigma prior.
 PRIOR_VARIANCE = math.radians(10.0) ** 2
 #: Upstream values older than this are treated as missing [s].
@@ -93,13 +100,14 @@ class SlopeNode(EstimatorNode):
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
             self.subscribe_imu_bias(self.bias)
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
-                                    forward_speed_entry)
+                                    planar_velocity_entry)
             self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
 
     def _make_core(self):
-        cls = slope_core.SLOPE_METHODS[self.method]
+        if not hasattr(self, "config"):
+            self.config = self.declare_config(self.method, CONFIGS[self.method](), "paper 004 where given")
         try:
-            return cls()
+            return slope_core.SLOPE_METHODS[self.method](self.config)
         except ValueError as exc:
             raise ParameterError(f"method '{self.method}': {exc}") from exc
 
@@ -110,14 +118,16 @@ class SlopeNode(EstimatorNode):
         else:
             self.reject("speed:invalid")
 
-    def speed_at(self, t: float) -> float | None:
-        """Vehicle speed for the observer: state node, else fusion, else CAN."""
-        for source, history in (("vehicle_state", self.state_speed), ("odometry", self.odom_speed)):
-            item = history.at(t)
-            if item is not None and t - item[0] < STALE_AFTER_S:
-                return item[1]
+    def velocity_at(self, t: float) -> tuple[float, float] | None:
+        """(vx, vy) for the observer: state node, else fusion (vy 0), else CAN (vy 0)."""
+        item = self.state_speed.at(t)
+        if item is not None and t - item[0] < STALE_AFTER_S:
+            return item[1], item[2]
+        item = self.odom_speed.at(t)
+        if item is not None and t - item[0] < STALE_AFTER_S:
+            return item[1], 0.0
         if self.can_speed is not None and t - self.can_speed[0] < STALE_AFTER_S:
-            return self.can_speed[1]
+            return self.can_speed[1], 0.0
         return None
 
     def on_imu(self, t: float, msg: Imu) -> None:
@@ -135,9 +145,16 @@ class SlopeNode(EstimatorNode):
                     self.reject("slope:rejected_by_core")
         else:
             f, w = self.bias.correct(t, f, w)
-            speed = self.speed_at(t)
-            self.set_missing("vehicle speed", speed is None)
-            if speed is not None and not self.core.step(t, float(f[0]), speed, yaw_rate=float(w[2])):
+            velocity = self.velocity_at(t)
+            self.set_missing("vehicle speed", velocity is None)
+            # Eq. 21: a_x,acc = vx' - r vy + g theta (the observer adds r vy back). The body's
+            # pitch on its suspension tilts the accelerometer too: take it out, as for the
+            # fusion grade, so that theta is the road's.
+            ax = float(f[0])
+            squat = self.squat.update(t, ax - self.vehicle.gravity * math.sin(self.core.slope))
+            ax -= self.vehicle.gravity * math.sin(squat)
+            if velocity is not None and not self.core.step(t, ax, velocity[0],
+                                                           yaw_rate=float(w[2]), vy=velocity[1]):
                 self.reject("slope:rejected_by_core")
         if t - self._last_pub >= 1.0 / self.rate - 1e-9:
             self._last_pub = t
