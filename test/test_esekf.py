@@ -180,6 +180,30 @@ def test_imu_mounting_estimated(estimate):
         assert grade_rmse > 0.4     # what the states are for
 
 
+def test_in_motion_alignment_when_started_while_driving():
+    """A filter started at 25 s (15 m/s, no standstill ahead of it) levels itself on the
+    specific force minus the CAN-speed kinematics, takes the heading from GNSS, and then
+    tracks speed and grade."""
+    sim = simulate(seed=2)
+    start = sim["t"] >= 25.0
+    cut = dict(sim)
+    for key in ("t", "imu_f", "imu_w", "v", "grade", "yaw", "pos", "vn"):
+        cut[key] = sim[key][start]
+    keep_g, keep_s = sim["gnss_t"] >= 25.0, sim["speed_t"] >= 25.0
+    cut["gnss_t"], cut["gnss"] = sim["gnss_t"][keep_g], sim["gnss"][keep_g]
+    cut["speed_t"], cut["speed"] = sim["speed_t"][keep_s], sim["speed"][keep_s]
+    ekf, out = run_filter(cut)
+    assert ekf.events["aligned_in_motion"] == 1 and ekf.initialized
+    t_init = cut["t"][np.argmax(out["running"])]
+    assert t_init < 25.0 + 5.0 + 3.0, t_init
+    m = out["running"] & (cut["t"] > 60.0)
+    assert _rms(out["vx"][m] - cut["v"][m]) < 0.1
+    assert math.degrees(_rms(out["grade"][m] - cut["grade"][m])) < 0.5
+    # without it the filter waits for a standstill that only comes at the end of the drive
+    ekf_off, out_off = run_filter(cut, FusionEKF(FusionConfig(in_motion_alignment=False)))
+    assert not out_off["running"][cut["t"] < 130.0].any()
+
+
 def test_gyro_bias_recovered(drive):
     """Tolerance 5e-4 rad/s (0.03 deg/s) per axis: the 200-sample standstill average alone
     has sigma = 2e-3 / sqrt(200) = 1.4e-4 rad/s, so this is ~3.5 sigma of the initial error,

@@ -148,6 +148,13 @@ class FusionConfig:
     init_max_accel_std: float = 0.3          # [m/s^2] per-axis std over the alignment window
     init_max_gyro_std: float = 0.02          # [rad/s]
     heading_min_baseline_m: float = 15.0     # GNSS travel before yaw is fixed
+    # In-motion alignment (not in the paper, which starts at standstill): a filter started
+    # while the car drives (a node restart, a bag cut mid-drive) levels itself on the mean
+    # specific force minus the CAN-speed kinematics over this window, with these priors.
+    in_motion_alignment: bool = True
+    in_motion_window_s: float = 5.0          # [s] of continuous motion
+    in_motion_tilt_sigma: float = 0.0175     # [rad] (1 deg) tilt prior after it
+    in_motion_gyro_bias_sigma: float = 0.005  # [rad/s] gyro-bias prior (no standstill mean)
     heading_max_fixes: int = 600
     # --- robustness ---
     gnss_gate_chi2: float | None = 16.27     # chi2(3) 99.9 %; None disables
@@ -169,7 +176,7 @@ class FusionConfig:
                "nh_sigma_z", "stationary_sigma", "speed_timeout_s", "init_max_accel_std",
                "init_max_gyro_std", "heading_min_baseline_m", "stationary_max_accel",
                "stationary_max_rate", "stationary_imu_tau_s", "max_measurement_delay_s",
-               "max_imu_dt_s"]
+               "max_imu_dt_s", "in_motion_window_s", "in_motion_tilt_sigma", "in_motion_gyro_bias_sigma"]
         for name in pos:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
@@ -212,7 +219,7 @@ class FusionConfig:
         if self.heading_max_fixes < 2:
             raise ValueError("FusionConfig.heading_max_fixes must be >= 2")
         for name in ("stationary_update_longitudinal", "speed_unsigned", "full_velocity_jacobian",
-                     "estimate_mounting"):
+                     "estimate_mounting", "in_motion_alignment"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"FusionConfig.{name} must be a bool")
 
@@ -282,13 +289,14 @@ class FusionEKF:
         self._hint = None
         self._align_f: list = []
         self._align_w: list = []
+        self._motion: list = []          # (t, f, w, CAN speed) while moving, for in-motion alignment
         self._heading_fixes: list = []   # (gnss_enu, ins_enu, variance_h)
         self._consec = {"gnss": 0, "speed": 0}
         self.rejected = {"imu_nonfinite": 0, "imu_out_of_order": 0,
                          "gnss_nonfinite": 0, "gnss_out_of_order": 0, "gnss_stale": 0, "gnss_gate": 0,
                          "speed_nonfinite": 0, "speed_out_of_order": 0, "speed_stale": 0, "speed_gate": 0,
                          "update_numerical": 0}
-        self.events = {"imu_gap": 0, "align_restart": 0, "gnss_covariance_reopened": 0,
+        self.events = {"imu_gap": 0, "align_restart": 0, "aligned_in_motion": 0, "gnss_covariance_reopened": 0,
                        "speed_covariance_reopened": 0, "heading_initialised": 0}
         self.heading_sigma_at_init = None
 
@@ -382,7 +390,10 @@ class FusionEKF:
             self._align_f.clear()
             self._align_w.clear()
             self.status = STATUS_WAIT_STANDSTILL
+            if c.in_motion_alignment and self._hint is None:
+                self._motion_align_step(t, f, w)
             return
+        self._motion.clear()
         self._align_f.append(f)
         self._align_w.append(w)
         self.status = STATUS_ALIGNING
@@ -398,6 +409,34 @@ class FusionEKF:
             del self._align_w[: n // 2]
             return
         self._align(fa.mean(axis=0), wa.mean(axis=0))
+
+    def _motion_align_step(self, t: float, f: np.ndarray, w: np.ndarray) -> None:
+        """Level the filter while driving: over ``in_motion_window_s`` of motion the mean
+        specific force is gravity plus the mean kinematic acceleration, which the CAN speed
+        gives in the body frame as [dv/dt, v r, 0] (no sideslip, no vertical motion):
+        f = a_b + R^T g_up + b.  The gyro bias cannot be averaged out while turning, so it
+        starts at zero with ``in_motion_gyro_bias_sigma``."""
+        c = self.config
+        self._motion.append((t, f, w, float(self._last_speed)))
+        if t - self._motion[0][0] < c.in_motion_window_s:
+            return
+        data = self._motion
+        ts = np.array([d[0] for d in data])
+        fs = np.array([d[1] for d in data])
+        ws = np.array([d[2] for d in data])
+        vs = np.array([d[3] for d in data])
+        self._motion = []
+        tc = ts - ts.mean()
+        dvdt = float(tc @ (vs - vs.mean()) / (tc @ tc))          # least-squares slope of CAN speed
+        kinematic = np.array([dvdt, float(np.mean(vs * ws[:, 2])), -float(np.mean(vs * ws[:, 1]))])
+        self._align(fs.mean(axis=0) - kinematic, np.zeros(3))
+        self._v = self._R @ np.array([float(vs[-1]), 0.0, 0.0])
+        tilt = c.in_motion_tilt_sigma ** 2
+        P = self._P
+        P[IA:IA + 2, IA:IA + 2] += np.eye(2) * tilt
+        P[IBG:IBG + 3, IBG:IBG + 3] = np.eye(3) * max(c.in_motion_gyro_bias_sigma, c.p0_gyro_bias_sigma) ** 2
+        P[IV:IV + 3, IV:IV + 3] = np.eye(3) * max(c.p0_velocity_sigma, c.speed_sigma) ** 2
+        self.events["aligned_in_motion"] += 1
 
     def _align(self, f_mean: np.ndarray, w_mean: np.ndarray) -> None:
         """Sec. 7.1: roll/pitch from gravity, gyro bias = mean rate, accel bias = 0."""

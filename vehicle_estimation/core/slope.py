@@ -90,6 +90,10 @@ class ClassicalSlopeConfig:
         initial_slope, initial_slope_std: prior on ``theta`` [rad].
         luenberger_gain: ``L_c`` (paper: ``[1, -2]^T``), continuous-time [1/s, rad/m].
         cubic_kappa, cubic_gamma: Eq. 24 cubic term ``kappa_c``, ``gamma`` (0 = off).
+        cubic_max_step_gain: the explicit-Euler step of the cubic term is capped so that the
+            total correction of ``v_x`` per step is at most this fraction of the innovation
+            (the continuous Eq. 24 has no such limit; its Euler discretisation diverges for
+            gains above 2, e.g. on a speed that jumps while an upstream filter starts).
         max_gap_s: stamp gap that re-initialises the observer [s].
         converged_std: ``converged`` once ``sqrt(variance)`` is below this [rad] ...
         min_converge_time: ... and at least this long since (re)initialisation [s].
@@ -105,6 +109,7 @@ class ClassicalSlopeConfig:
     luenberger_gain: tuple = (1.0, -2.0)
     cubic_kappa: float = 0.0
     cubic_gamma: float = 1.0
+    cubic_max_step_gain: float = 0.5
     max_gap_s: float = 0.5
     converged_std: float = 0.005
     min_converge_time: float = 2.0
@@ -118,6 +123,8 @@ class ClassicalSlopeConfig:
             raise ValueError(f"initial_slope must be finite and within +-pi/2, got {self.initial_slope!r}")
         if not (math.isfinite(self.cubic_kappa) and self.cubic_kappa >= 0.0):
             raise ValueError(f"cubic_kappa must be finite and >= 0, got {self.cubic_kappa!r}")
+        if not (math.isfinite(self.cubic_max_step_gain) and 0.0 < self.cubic_max_step_gain < 1.0):
+            raise ValueError(f"cubic_max_step_gain must be in (0, 1), got {self.cubic_max_step_gain!r}")
         if not (math.isfinite(self.min_converge_time) and self.min_converge_time >= 0.0):
             raise ValueError(f"min_converge_time must be finite and >= 0, got {self.min_converge_time!r}")
         L = np.asarray(self.luenberger_gain, dtype=float)
@@ -215,10 +222,15 @@ class _SlopeObserverBase:
             K = P[:, 0] / S
         else:
             K = np.asarray(self.config.luenberger_gain, dtype=float) * dt
+            if self._cubic_dir is not None:
+                # Eq. 24's cubic term -(e^T C^T kappa_c C e) N_c C e, C e ~ innovation, as a
+                # gain on the innovation: dt (-N_c kappa_c) innov^2, capped where the explicit
+                # Euler step would overshoot the measurement (cubic_max_step_gain).
+                d = self._cubic_dir
+                room = max(self.config.cubic_max_step_gain - K[0], 0.0)
+                innov_sq = min(innov * innov, room / (dt * d[0])) if d[0] > 0.0 else innov * innov
+                K = K + dt * d * innov_sq
         self._x = self._x + K * innov
-        if self._cubic_dir is not None:
-            # Eq. 24: - (e^T C^T kappa C e) N_c C e with C e ~ innovation
-            self._x = self._x + dt * self._cubic_dir * self.config.cubic_kappa * innov ** 3
         IKC = np.eye(2) - np.outer(K, [1.0, 0.0])
         P = IKC @ P @ IKC.T + r_vx * np.outer(K, K)
         self._P = 0.5 * (P + P.T)
@@ -503,10 +515,6 @@ class CubicPredictionSlopeConfig(ClassicalSlopeConfig):
         prediction_warmup_s: after (re)initialisation the observer runs with ``u2 = 0`` and
             collects no fit points for this long [s], so that its own initial convergence is
             not taken for a slope change and extrapolated.
-        cubic_max_step_gain: the explicit-Euler step of the cubic term is capped so that the
-            total correction of ``v_x`` per step is at most this fraction of the innovation
-            (the continuous Eq. 24 has no such limit; its Euler discretisation diverges for
-            gains above 2).
     """
 
     gain_mode: str = "luenberger"
@@ -521,7 +529,6 @@ class CubicPredictionSlopeConfig(ClassicalSlopeConfig):
     max_slope_curvature: float = 0.01
     rate_mode: str = "distance"
     prediction_warmup_s: float = 2.0
-    cubic_max_step_gain: float = 0.5
 
     @classmethod
     def paper_gain(cls, **overrides) -> "CubicPredictionSlopeConfig":
@@ -532,7 +539,7 @@ class CubicPredictionSlopeConfig(ClassicalSlopeConfig):
     def validate(self) -> None:
         super().validate()
         _check_positive(self, ("fit_window_s", "fit_sample_period_s", "fit_min_span_m",
-                               "max_slope_curvature", "cubic_max_step_gain"))
+                               "max_slope_curvature"))
         if not (isinstance(self.fit_min_points, (int, np.integer)) and self.fit_min_points >= 3):
             raise ValueError(f"fit_min_points must be an integer >= 3, got {self.fit_min_points!r}")
         if self.fit_sample_period_s * (self.fit_min_points - 1) > self.fit_window_s:
@@ -543,8 +550,6 @@ class CubicPredictionSlopeConfig(ClassicalSlopeConfig):
             raise ValueError(f"rate_mode must be 'distance' or 'as_printed', got {self.rate_mode!r}")
         if not (math.isfinite(self.prediction_warmup_s) and self.prediction_warmup_s >= 0.0):
             raise ValueError(f"prediction_warmup_s must be finite and >= 0, got {self.prediction_warmup_s!r}")
-        if self.cubic_max_step_gain >= 1.0:
-            raise ValueError(f"cubic_max_step_gain must be < 1, got {self.cubic_max_step_gain!r}")
 
 
 class CubicPredictionSlopeObserver(_SlopeObserverBase):
@@ -602,24 +607,6 @@ class CubicPredictionSlopeObserver(_SlopeObserverBase):
             self.prediction.update(self.t, speed, theta)
             self.slope_rate = self.prediction.slope_rate(speed, theta)
         return np.array([ax_measured + yaw_rate * vy, self.slope_rate])
-
-    def _correct(self, dt: float, vx: float, r_vx: float) -> None:
-        if self.config.gain_mode == "kalman":
-            super()._correct(dt, vx, r_vx)
-            return
-        innov = vx - self._x[0]
-        K = self.design.L * dt
-        if self._cubic_dir is not None:
-            # Eq. 24's cubic term as a gain on the innovation: dt (-N_c kappa_c) innov^2,
-            # capped where the explicit Euler step would overshoot the measurement
-            d = self._cubic_dir
-            room = max(self.config.cubic_max_step_gain - K[0], 0.0)
-            innov_sq = min(innov * innov, room / (dt * d[0])) if d[0] > 0.0 else innov * innov
-            K = K + dt * d * innov_sq
-        self._x = self._x + K * innov
-        IKC = np.eye(2) - np.outer(K, [1.0, 0.0])
-        P = IKC @ self._P @ IKC.T + r_vx * np.outer(K, K)
-        self._P = 0.5 * (P + P.T)
 
     def step(self, t: float, ax_measured: float, vx: float, vx_dot: Optional[float] = None,
              yaw_rate: float = 0.0, vy: float = 0.0, vx_variance: Optional[float] = None) -> bool:

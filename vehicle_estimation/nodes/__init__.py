@@ -16,9 +16,13 @@ class NodeSpec:
     depth: int         # position in the data flow (fusion 0 ... mass 3)
 
 
+# Paper 004 Fig. 1: the slope observer needs the state's vx and vy (fast signals: a lag of
+# even 0.1 s shows as degrees of slope at every brake onset), while the state filter only
+# needs the slope and the mass, which change slowly. So the state runs before the slope, and
+# state <- slope, state <- mass are the feedback edges (looked up with sync.feedback_lag).
 PIPELINE = (
     NodeSpec("fusion", "vehicle_estimation.nodes.fusion_node", "fusion_node", 0),
-    NodeSpec("road_slope", "vehicle_estimation.nodes.slope_node", "slope_node", 1),
-    NodeSpec("vehicle_state", "vehicle_estimation.nodes.state_node", "state_node", 2),
+    NodeSpec("vehicle_state", "vehicle_estimation.nodes.state_node", "state_node", 1),
+    NodeSpec("road_slope", "vehicle_estimation.nodes.slope_node", "slope_node", 2),
     NodeSpec("mass", "vehicle_estimation.nodes.mass_node", "mass_node", 3),
 )

@@ -85,7 +85,7 @@ class SlopeNode(EstimatorNode):
         self.squat = SuspensionPitch(self.vehicle.pitch_gain, self.vehicle.pitch_time_constant)
         self.bias = FusionImuBias()
         self.grade = UpstreamHistory()
-        self.state_speed = UpstreamHistory(lag_s=self.feedback_lag)
+        self.state_speed = UpstreamHistory()
         self.odom_speed = UpstreamHistory()
         self.can_speed: tuple[float, float] | None = None
         self._last_pub = -math.inf

@@ -1,7 +1,16 @@
 """Vehicle-state node: vx, vy, yaw rate and sideslip on the paper-004 4-wheel model.
 
-Filter (parameter ``filter``): ``ckf``, the cubature Kalman filter of paper 004 Sec. 4 with
-Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14.
+Filter (parameter ``filter``), both on the paper-004 4-wheel model with Dugoff tyres
+(Eqs. 1-9) and sideslip from Eq. 14:
+
+* ``vbackf``: the variational Bayesian adaptive cubature Kalman filter of paper 004 Sec. 4
+  (Eqs. 10-13): the measurement-noise covariance is learnt online (inverse-Wishart), so
+  time-varying sensor noise (Eq. 34) does not mis-weight the IMU. Its parameters:
+  ``vbackf.*``.
+* ``ckf``: the plain cubature Kalman filter, the contrast of paper 004 Sec. 7.
+
+Shared tuning (Sec. 7.1 defaults): ``p0_diag``, ``q_diag`` (per ``tau`` = 0.01 s) and
+``r_diag`` (the initial R for ``vbackf``).
 
 Subscribes (sensor-data QoS): ``imu/data`` (measurement [ax, ay, r], the trigger),
 ``vehicle/joint_states`` (steering-wheel angle, four wheel speeds). From other nodes:
@@ -32,14 +41,17 @@ from std_msgs.msg import Float64
 
 from vehicle_estimation import topics
 from vehicle_estimation.core.ckf import VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.core.vbackf import VBConfig, VehicleStateVBACKF
 from vehicle_estimation.core.vehicle_model import VehicleInputs
 from vehicle_estimation.nodes.base import (
     EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
     run_node, sec_to_stamp)
 from vehicle_estimation.nodes.conversions import MalformedMessage, chassis_reading, imu_arrays
 
-FILTERS = ("ckf",)
+FILTERS = ("ckf", "vbackf")
 STALE_AFTER_S = 1.0
+#: How long the filter waits for wheel speeds to start from before it starts from initial_vx [s].
+WHEEL_WAIT_S = 1.0
 
 
 class StateNode(EstimatorNode):
@@ -56,14 +68,24 @@ class StateNode(EstimatorNode):
         self.init_from_wheels = self.declare_bool(
             "init_vx_from_wheel_speeds", True,
             "Start vx from the rear wheel speeds when available (else from initial_vx)")
+        paper = VehicleStateConfig()
+        self.p0_diag = self.declare_float_array(
+            "p0_diag", list(np.diag(paper.P0)), "Initial covariance diagonal of [vx, vy, r, ax, ay] (Sec. 7.1)")
+        self.q_diag = self.declare_float_array(
+            "q_diag", list(np.diag(paper.Q)), "Process noise diagonal per 0.01 s (Sec. 7.1)")
+        self.r_diag = self.declare_float_array(
+            "r_diag", list(np.diag(paper.R)), "Measurement noise diagonal of [ax, ay, r] (Sec. 7.1)")
+        self.vb_config = (self.declare_config("vbackf", VBConfig(), "ref. [30] of paper 004")
+                          if self.filter_name == "vbackf" else None)
         self.core = self._make_core()
         self.bias = FusionImuBias()
-        self.slope = UpstreamHistory()
+        self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
         self.mass = UpstreamHistory(lag_s=self.feedback_lag)
         self.chassis = None
         self.chassis_t = -math.inf
         self._last_pub = -math.inf
         self._steer = 0.0
+        self._first_imu_t: float | None = None
         self.min_dynamic_speed = self.declare_float(
             "sideslip_min_speed", 3.0,
             "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
@@ -78,10 +100,17 @@ class StateNode(EstimatorNode):
         self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
 
     def _make_core(self) -> VehicleStateCKF:
+        for name, values, n in (("p0_diag", self.p0_diag, 5), ("q_diag", self.q_diag, 5),
+                                ("r_diag", self.r_diag, 3)):
+            if len(values) != n or not all(math.isfinite(v) and v > 0.0 for v in values):
+                raise ParameterError(f"parameter '{name}' must be {n} positive numbers, got {values}")
         try:
-            config = VehicleStateConfig(initial_vx=self.initial_vx,
+            config = VehicleStateConfig(P0=np.diag(self.p0_diag), Q=np.diag(self.q_diag),
+                                        R=np.diag(self.r_diag), initial_vx=self.initial_vx,
                                         init_vx_from_wheel_speeds=self.init_from_wheels)
             config.validate()
+            if self.filter_name == "vbackf":
+                return VehicleStateVBACKF(self.vehicle, config, self.vb_config)
             return VehicleStateCKF(self.vehicle, config)
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"filter '{self.filter_name}': {exc}") from exc
@@ -124,6 +153,13 @@ class StateNode(EstimatorNode):
             mass=self._upstream(self.mass, t, self.vehicle.mass, "mass"),
         )
         z = np.array([f[0], f[1], w[2]])
+        if not self.core.initialised and self.init_from_wheels and not np.all(np.isfinite(wheels)):
+            # Starting from initial_vx while the car may be moving costs seconds of transient
+            # (and a wrong slope and mass downstream): wait up to WHEEL_WAIT_S for the wheels.
+            if self._first_imu_t is None:
+                self._first_imu_t = t
+            if t - self._first_imu_t < WHEEL_WAIT_S:
+                return
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
         if t - self._last_pub >= 1.0 / self.rate - 1e-9:
@@ -168,11 +204,16 @@ class StateNode(EstimatorNode):
         self.slope.clear()
         self.mass.clear()
         self.chassis = None
+        self._first_imu_t = None
         self._last_pub = -math.inf
 
     def status_values(self) -> dict[str, str]:
         x = self.core.x
-        return {"filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
+        extra = {}
+        if self.filter_name == "vbackf":
+            extra = {"learnt R diagonal": np.array2string(np.diag(self.core.measurement_noise), precision=6),
+                     "VB fallbacks": str(self.core.vb_fallbacks)}
+        return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 
 
