@@ -272,7 +272,7 @@ def _mass_drive_stream(p, mass_true: float, slope_msgs: bool):
 @pytest.mark.parametrize("with_slope", [True, False])
 def test_mass_node_recovers_mass_from_drive_force(with_slope):
     mass_true = 1800.0
-    node = MassNode(parameter_overrides=vehicle_overrides())
+    node = MassNode(parameter_overrides=vehicle_overrides() + [Parameter("method", value="rls")])
     h = Harness(node)
     try:
         inputs = [(JointState, topics.POWERTRAIN), (Imu, topics.IMU), (JointState, topics.JOINT_STATES),
@@ -351,7 +351,7 @@ def test_mass_node_ffrls_uses_braking_samples():
 
 
 @pytest.mark.parametrize("module, override, name", [
-    ("mass_node", "mass.forgetting_factor:=1.5", "forgetting_factor"),
+    ("mass_node", "ffrls.forgetting_factor:=1.5", "forgetting_factor"),
     ("mass_node", "method:=bogus", "method"),
     ("slope_node", "method:=bogus", "method"),
     ("state_node", "vehicle.mass:=-5.0", "vehicle.mass"),

@@ -8,7 +8,7 @@ Methods (parameter ``method``):
   reported, or predicted from the engine to vehicle speed ratio, Eqs. 10-11), or from engine
   load and speed through the torque regression of Eq. 49 (coefficients in
   ``mass.torque_regression``).
-* ``ffrls``: paper 004 Sec. 6 (Eqs. 28-31), parameters ``ffrls.*``: the braking torque is in
+* ``ffrls`` (default): paper 004 Sec. 6 (Eqs. 28-31), parameters ``ffrls.*``: the braking torque is in
   the regression, so braking and down-hill samples count too, and the threshold judgment of
   Eq. 31 passes only well-excited samples. Drive force from ``drive`` or engine torque.
 
@@ -149,7 +149,7 @@ class MassNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("mass", **node_kwargs)
         self.vehicle = self.declare_vehicle()
-        self.method = self.declare_str("method", "rls", "Mass estimation method", METHODS)
+        self.method = self.declare_str("method", "ffrls", "Mass estimation method", METHODS)
         self.rate = self.declare_float("publish_rate_hz", 10.0, "Output rate [Hz]", 0.1, 1000.0)
         self.update_rate = self.declare_float(
             "update_rate_hz", 4.0,

@@ -2,9 +2,9 @@
 
 Methods (parameter ``method``):
 
-* ``fusion_pitch`` (default): the grade of paper 003 Sec. 7.2, i.e. the pitch of the fusion
+* ``fusion_pitch``: the grade of paper 003 Sec. 7.2, i.e. the pitch of the fusion
   node's error-state EKF (``estimation/fusion/road_grade``), smoothed as paper 003 Sec. 7.1 does.
-* ``cubic_prediction``: paper 004 Sec. 5, the slope prediction model (Eqs. 15-20: the slope
+* ``cubic_prediction`` (default): paper 004 Sec. 5, the slope prediction model (Eqs. 15-20: the slope
   rate from a fit of recent slopes over travelled distance) with the cubic observer
   (Eqs. 21-27), on the bias-compensated longitudinal specific force and the vehicle speed.
 * ``classical``: the contrast of paper 004 Eqs. 32-33 (θ̇ = 0 slope model).
@@ -79,7 +79,7 @@ class SlopeNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("road_slope", **node_kwargs)
         self.vehicle = self.declare_vehicle()
-        self.method = self.declare_str("method", "fusion_pitch", "Slope method", METHODS)
+        self.method = self.declare_str("method", "cubic_prediction", "Slope method", METHODS)
         self.rate = self.declare_float("publish_rate_hz", 50.0, "Output rate [Hz]", 0.1, 1000.0)
         self.core = self._make_core()
         self.squat = SuspensionPitch(self.vehicle.pitch_gain, self.vehicle.pitch_time_constant)

@@ -58,7 +58,7 @@ class StateNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("vehicle_state", **node_kwargs)
         self.vehicle = self.declare_vehicle()
-        self.filter_name = self.declare_str("filter", "ckf", "Vehicle-state filter", FILTERS)
+        self.filter_name = self.declare_str("filter", "vbackf", "Vehicle-state filter", FILTERS)
         self.rate = self.declare_float("publish_rate_hz", 100.0, "Output rate [Hz]", 0.1, 1000.0)
         self.stale_input_s = self.declare_float(
             "stale_input_s", 0.5, "Chassis signals older than this count as missing [s]", 0.01, 10.0)
@@ -71,8 +71,12 @@ class StateNode(EstimatorNode):
         paper = VehicleStateConfig()
         self.p0_diag = self.declare_float_array(
             "p0_diag", list(np.diag(paper.P0)), "Initial covariance diagonal of [vx, vy, r, ax, ay] (Sec. 7.1)")
+        # Sec. 7.1's Q = 0.1 I read as a density (Q tau per 0.01 s step): per step it makes the
+        # predicted measurement covariance ~100 R, the gain ~1 and R unidentifiable, so the
+        # VB-ACKF could learn nothing (see the README).
         self.q_diag = self.declare_float_array(
-            "q_diag", list(np.diag(paper.Q)), "Process noise diagonal per 0.01 s (Sec. 7.1)")
+            "q_diag", list(np.diag(paper.Q) * paper.nominal_dt),
+            "Process noise diagonal per 0.01 s step (Sec. 7.1's 0.1 I as a density)")
         self.r_diag = self.declare_float_array(
             "r_diag", list(np.diag(paper.R)), "Measurement noise diagonal of [ax, ay, r] (Sec. 7.1)")
         self.vb_config = (self.declare_config("vbackf", VBConfig(), "ref. [30] of paper 004")
