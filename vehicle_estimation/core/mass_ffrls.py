@@ -56,13 +56,13 @@ at another rate it means another memory in seconds (125 s at 4 Hz); use
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 from collections.abc import Mapping
 from typing import Any
 
-from vehicle_estimation.core.mass_rls import RecursiveLeastSquares, predict_gear
+from vehicle_estimation.core.mass_rls import (
+    ForgettingMassEstimator, _finite, predict_gear, validate_forgetting_fields)
 from vehicle_estimation.vehicle import VehicleParams
 
 #: The paper's sampling time tau (Sec. 7.1), at which lambda_m = 0.998 was tuned [s].
@@ -77,16 +77,6 @@ REJECT_REASONS = (
     "gear",       # engine torque given but no gear known (needed for i_g of Eq. 28)
     "threshold",  # Eq. (31): epsilon = |Omega_m| below the threshold
 )
-
-
-def _finite(value: Any) -> bool:
-    """True for a real number (int, float, NumPy scalar) that is finite."""
-    if value is None or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except (TypeError, ValueError):
-        return False
 
 
 def equivalent_forgetting_factor(forgetting_factor: float, reference_period_s: float,
@@ -148,26 +138,7 @@ class FFRLSMassConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-
-        def finite(name: str) -> float:
-            value = getattr(self, name)
-            if isinstance(value, bool):   # validate() reports every bad field as ValueError
-                raise ValueError(f"{name} must be a number, got {value!r}")  # noqa: TRY004
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"{name} must be a number, got {value!r}") from None
-            if not math.isfinite(value):
-                raise ValueError(f"{name} must be finite, got {value!r}")
-            return value
-
-        lam = finite("forgetting_factor")
-        if not 0.0 < lam <= 1.0:
-            raise ValueError(f"forgetting_factor must be in (0, 1], got {lam!r}")
-        for name in ("initial_mass", "initial_gain", "initial_residual_std", "min_mass",
-                     "max_mass", "convergence_max_cv", "convergence_max_rel_change"):
-            if finite(name) <= 0.0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        finite = validate_forgetting_fields(self)
         for name in ("excitation_threshold", "min_speed", "max_abs_slope"):
             if finite(name) < 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
@@ -204,7 +175,7 @@ class FFRLSMassConfig:
         return config
 
 
-class FFRLSMassEstimator:
+class FFRLSMassEstimator(ForgettingMassEstimator):
     """Online mass estimate, paper 004 Eqs. (28)-(31).
 
     Feed one sample per :meth:`step`. Properties: :attr:`mass` (clipped to the configured
@@ -217,103 +188,20 @@ class FFRLSMassEstimator:
     and model errors (wind, grade, tyre forces in cornering) are not white.
     """
 
+    REJECT_REASONS = REJECT_REASONS
+
     def __init__(self, params: VehicleParams, config: FFRLSMassConfig | None = None) -> None:
-        self.params = params
-        self.config = config if config is not None else FFRLSMassConfig()
-        self.config.validate()
-        self.reset()
+        super().__init__(params, config if config is not None else FFRLSMassConfig())
 
-    # ------------------------------------------------------------------ state
-    def reset(self, mass: float | None = None, gain: float | None = None) -> None:
-        """Restart Eq. (30) at ``mass``/``gain`` (config defaults) and clear all statistics."""
-        cfg = self.config
-        m0 = cfg.initial_mass if mass is None else float(mass)
-        p0 = cfg.initial_gain if gain is None else float(gain)
-        if not (math.isfinite(m0) and m0 > 0.0):
-            raise ValueError(f"reset mass must be finite and > 0, got {mass!r}")
-        if not (math.isfinite(p0) and p0 > 0.0):
-            raise ValueError(f"reset gain must be finite and > 0, got {gain!r}")
-        self.rls = RecursiveLeastSquares(cfg.forgetting_factor, m0, p0)
-        self._res_weight = 1.0
-        self._res_sq = cfg.initial_residual_std ** 2
-        self._window: collections.deque[float] = collections.deque(maxlen=int(cfg.convergence_window))
-        self.samples_used = 0
-        self.rejected: dict[str, int] = {reason: 0 for reason in REJECT_REASONS}
-        self.last_phi = math.nan       # Omega_m of the last accepted sample [m/s^2]
-        self.last_y = math.nan         # y of the last accepted sample [N]
+    def _reset_method_state(self) -> None:
         self.last_epsilon = math.nan   # epsilon of Eq. (31) of the last sample that reached it
-        self.last_gear: int | None = None
-
-    def state_dict(self) -> dict[str, float]:
-        """Plain floats for persistence (e.g. a YAML/JSON file between drives)."""
-        return {
-            "mass": float(self.rls.theta),
-            "gain": float(self.rls.p),
-            "residual_weight": float(self._res_weight),
-            "residual_sq": float(self._res_sq),
-            "samples_used": float(self.samples_used),
-        }
-
-    def load_state_dict(self, state: Mapping[str, float]) -> None:
-        """Restore :meth:`state_dict` output; raises ``ValueError`` on missing/invalid values."""
-        try:
-            mass = float(state["mass"])
-            gain = float(state["gain"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"mass estimator state needs finite 'mass' and 'gain': {exc}") from None
-        self.reset(mass=mass, gain=gain)
-        weight = float(state.get("residual_weight", 1.0))
-        sq = float(state.get("residual_sq", self.config.initial_residual_std ** 2))
-        if math.isfinite(weight) and weight > 0.0 and math.isfinite(sq) and sq >= 0.0:
-            self._res_weight, self._res_sq = weight, sq
-        used = float(state.get("samples_used", 0.0))
-        self.samples_used = int(used) if math.isfinite(used) and used >= 0 else 0
-
-    # ------------------------------------------------------------------ outputs
-    @property
-    def mass(self) -> float:
-        """Estimated mass [kg], clipped to [min_mass, max_mass] (the RLS state is not)."""
-        return min(max(self.rls.theta, self.config.min_mass), self.config.max_mass)
-
-    @property
-    def raw_mass(self) -> float:
-        return self.rls.theta
 
     @property
     def gain(self) -> float:
         """P_m of Eq. (30) [s^4/m^2]."""
         return self.rls.p
 
-    @property
-    def residual_variance(self) -> float:
-        """sigma^2 of the force residual [N^2] (exponentially weighted, see class docstring)."""
-        return self._res_sq / self._res_weight
-
-    @property
-    def variance(self) -> float:
-        """Estimated variance of the mass [kg^2] = P·sigma^2."""
-        return self.rls.p * self.residual_variance
-
-    @property
-    def converged(self) -> bool:
-        """True when the last ``convergence_window`` updates have a coefficient of variation
-        below ``convergence_max_cv`` and moved by less than ``convergence_max_rel_change``."""
-        window = self._window
-        if len(window) < window.maxlen:
-            return False
-        n = len(window)
-        mean = sum(window) / n
-        if mean <= 0.0:
-            return False
-        std = math.sqrt(max(sum((x - mean) ** 2 for x in window) / n, 0.0))
-        return (std / mean < self.config.convergence_max_cv
-                and abs(window[-1] - window[0]) / mean < self.config.convergence_max_rel_change)
-
     # ------------------------------------------------------------------ update
-    def _reject(self, reason: str) -> bool:
-        self.rejected[reason] += 1
-        return False
-
     def _gear(self, gear: Any, engine_speed: Any, vx: float) -> int | None:
         if _finite(gear):
             g = round(float(gear))
@@ -408,9 +296,4 @@ class FFRLSMassEstimator:
             # Overflow on absurd but finite inputs: keep the last estimate, as Eq. (31) does.
             self.rls.theta, self.rls.p, self.rls.last_residual = theta_before, p_before, residual_before
             return self._reject("nan")
-        self._res_weight = lam * self._res_weight + 1.0
-        self._res_sq = residual_sq
-        self._window.append(self.rls.theta)
-        self.samples_used += 1
-        self.last_phi, self.last_y = omega, y
-        return True
+        return self._accepted(omega, y, residual * residual)

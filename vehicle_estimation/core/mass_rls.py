@@ -33,7 +33,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from vehicle_estimation.vehicle import VehicleParams
 
@@ -64,6 +64,37 @@ def _finite(value: Any) -> bool:
         return math.isfinite(float(value))
     except (TypeError, ValueError):
         return False
+
+
+def finite_field(config: Any, name: str) -> float:
+    """``config.<name>`` as a finite float, else ``ValueError`` naming the field."""
+    value = getattr(config, name)
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return value
+
+
+def validate_forgetting_fields(config: Any, more_positive: Sequence[str] = ()) -> Callable[[str], float]:
+    """Checks shared by the RLS and FFRLS configs (lambda in (0, 1], positive initial values,
+    bounds and convergence limits); returns the field reader for the caller's own checks."""
+
+    def finite(name: str) -> float:
+        return finite_field(config, name)
+
+    lam = finite("forgetting_factor")
+    if not 0.0 < lam <= 1.0:
+        raise ValueError(f"forgetting_factor must be in (0, 1], got {lam!r}")
+    for name in ("initial_mass", "initial_gain", "initial_residual_std", "min_mass", "max_mass",
+                 "convergence_max_cv", "convergence_max_rel_change", *more_positive):
+        if finite(name) <= 0.0:
+            raise ValueError(f"{name} must be > 0, got {getattr(config, name)!r}")
+    return finite
 
 
 @dataclasses.dataclass
@@ -102,25 +133,7 @@ class MassRLSConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-
-        def finite(name: str) -> float:
-            value = getattr(self, name)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"{name} must be a number, got {value!r}") from None
-            if not math.isfinite(value):
-                raise ValueError(f"{name} must be finite, got {value!r}")
-            return value
-
-        lam = finite("forgetting_factor")
-        if not 0.0 < lam <= 1.0:
-            raise ValueError(f"forgetting_factor must be in (0, 1], got {lam!r}")
-        for name in ("initial_mass", "initial_gain", "initial_residual_std", "min_mass",
-                     "max_mass", "gear_ratio_tolerance", "convergence_max_cv",
-                     "convergence_max_rel_change"):
-            if finite(name) <= 0.0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        finite = validate_forgetting_fields(self, ("gear_ratio_tolerance",))
         for name in ("min_speed", "max_abs_slope", "max_brake_torque", "gear_shift_holdoff_s",
                      "min_phi"):
             if finite(name) < 0.0:
@@ -281,26 +294,25 @@ class EngineTorqueRegression:
         return total
 
 
-class LongitudinalMassEstimator:
-    """Online mass estimate from the longitudinal dynamics, paper 003 Eqs. (4)-(9) with gating.
+class ForgettingMassEstimator:
+    """What the least-squares mass estimators share (paper 003's RLS, paper 004's FFRLS): the
+    scalar RLS with forgetting, the residual-variance and convergence statistics, the clipped
+    output, the rejection counters and persistence. Subclasses set :attr:`REJECT_REASONS`,
+    implement ``step`` and call :meth:`_accepted` after each update.
 
-    Feed one sample per call of :meth:`step`. Properties: :attr:`mass` (clipped to the
-    configured bounds), :attr:`variance`, :attr:`converged`, :attr:`samples_used`,
-    :attr:`rejected` (count per reason in :data:`REJECT_REASONS`).
-
-    Variance: ``p·sigma^2``, where p is the RLS gain of Eq. (7) (for unit-weighted least
-    squares p ~ (sum lambda^k phi_k^2)^-1, so p·sigma^2 is the classical parameter variance)
-    and sigma^2 an exponentially weighted (same lambda) mean of the squared a-priori
-    residuals eps of Eq. (9), seeded with ``initial_residual_std^2`` at weight one. It is an
-    approximation: residuals are correlated and model errors (wind, grade) are not white.
+    Variance: ``p·sigma^2``, where p is the RLS gain (for unit-weighted least squares
+    p ~ (sum lambda^k phi_k^2)^-1, so p·sigma^2 is the classical parameter variance) and
+    sigma^2 an exponentially weighted (same lambda) mean of the squared a-priori residuals,
+    seeded with ``initial_residual_std^2`` at weight one. It is an approximation: residuals
+    are correlated and model errors (wind, grade) are not white.
     """
 
-    def __init__(self, params: VehicleParams, config: MassRLSConfig | None = None) -> None:
+    REJECT_REASONS: tuple[str, ...] = ()
+
+    def __init__(self, params: VehicleParams, config: Any) -> None:
         self.params = params
-        self.config = config if config is not None else MassRLSConfig()
+        self.config = config
         self.config.validate()
-        self.regression = EngineTorqueRegression.from_coefficients(
-            self.config.torque_regression, self.config.torque_regression_speed_unit)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -317,13 +329,15 @@ class LongitudinalMassEstimator:
         self._res_weight = 1.0
         self._res_sq = cfg.initial_residual_std ** 2
         self._window: collections.deque[float] = collections.deque(maxlen=int(cfg.convergence_window))
-        self._last_gear: int | None = None
-        self._last_shift_t = -math.inf
         self.samples_used = 0
-        self.rejected: dict[str, int] = {reason: 0 for reason in REJECT_REASONS}
-        self.last_phi = math.nan
-        self.last_y = math.nan
+        self.rejected: dict[str, int] = {reason: 0 for reason in self.REJECT_REASONS}
+        self.last_phi = math.nan       # regressor of the last accepted sample [m/s^2]
+        self.last_y = math.nan         # output of the last accepted sample [N]
         self.last_gear: int | None = None
+        self._reset_method_state()
+
+    def _reset_method_state(self) -> None:
+        """Subclass hook: clear what only the subclass keeps."""
 
     def state_dict(self) -> dict[str, float]:
         """Plain floats for persistence (e.g. a YAML/JSON file between drives)."""
@@ -393,6 +407,41 @@ class LongitudinalMassEstimator:
     def _reject(self, reason: str) -> bool:
         self.rejected[reason] += 1
         return False
+
+    def _accepted(self, phi: float, y: float, residual_sq: float) -> bool:
+        """Book-keeping after an RLS update with a-priori squared residual ``residual_sq``."""
+        lam = self.config.forgetting_factor
+        self._res_weight = lam * self._res_weight + 1.0
+        self._res_sq = lam * self._res_sq + residual_sq
+        self._window.append(self.rls.theta)
+        self.samples_used += 1
+        self.last_phi, self.last_y = phi, y
+        return True
+
+
+
+class LongitudinalMassEstimator(ForgettingMassEstimator):
+    """Online mass estimate from the longitudinal dynamics, paper 003 Eqs. (4)-(9) with gating.
+
+    Feed one sample per call of :meth:`step`. Properties: :attr:`mass` (clipped to the
+    configured bounds), :attr:`variance`, :attr:`converged`, :attr:`samples_used`,
+    :attr:`rejected` (count per reason in :data:`REJECT_REASONS`).
+
+    Variance: see :class:`ForgettingMassEstimator` (p of Eq. (7), residuals eps of Eq. (9)).
+    """
+
+    REJECT_REASONS = REJECT_REASONS
+
+    def __init__(self, params: VehicleParams, config: MassRLSConfig | None = None) -> None:
+        config = config if config is not None else MassRLSConfig()
+        config.validate()   # names a bad field before the regression is built from it
+        self.regression = EngineTorqueRegression.from_coefficients(
+            config.torque_regression, config.torque_regression_speed_unit)
+        super().__init__(params, config)
+
+    def _reset_method_state(self) -> None:
+        self._last_gear: int | None = None
+        self._last_shift_t = -math.inf
 
     def _gear(self, gear: float, engine_speed: float, vx: float) -> int | None:
         n_gears = len(self.params.gear_ratios)
@@ -490,11 +539,4 @@ class LongitudinalMassEstimator:
         y = force - drag - inertia * ax                                          # Eq. (6)
 
         self.rls.update(phi, y)                                                   # Eqs. (7)-(9)
-        lam = cfg.forgetting_factor
-        eps = self.rls.last_residual
-        self._res_weight = lam * self._res_weight + 1.0
-        self._res_sq = lam * self._res_sq + eps * eps
-        self._window.append(self.rls.theta)
-        self.samples_used += 1
-        self.last_phi, self.last_y = phi, y
-        return True
+        return self._accepted(phi, y, self.rls.last_residual ** 2)
