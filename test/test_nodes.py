@@ -269,19 +269,25 @@ def _mass_drive_stream(p, mass_true: float, slope_msgs: bool):
     return stream
 
 
+def _connect_mass_inputs(h: Harness) -> list:
+    """Publishers for every mass-node input; returns the list collecting mass_stamped."""
+    inputs = [(JointState, topics.POWERTRAIN), (Imu, topics.IMU), (JointState, topics.JOINT_STATES),
+              (TwistWithCovarianceStamped, topics.SPEED), (Vector3Stamped, topics.ROAD_SLOPE_STAMPED)]
+    for msg_type, topic in inputs:
+        h.probe.publisher_for(msg_type, topic)
+    out = h.probe.watch(Vector3Stamped, topics.MASS_STAMPED)
+    h.connect([topic for _, topic in inputs])
+    return out
+
+
 @pytest.mark.parametrize("with_slope", [True, False])
 def test_mass_node_recovers_mass_from_drive_force(with_slope):
     mass_true = 1800.0
     node = MassNode(parameter_overrides=vehicle_overrides() + [Parameter("method", value="rls")])
     h = Harness(node)
     try:
-        inputs = [(JointState, topics.POWERTRAIN), (Imu, topics.IMU), (JointState, topics.JOINT_STATES),
-                  (TwistWithCovarianceStamped, topics.SPEED), (Vector3Stamped, topics.ROAD_SLOPE_STAMPED)]
-        for msg_type, topic in inputs:
-            h.probe.publisher_for(msg_type, topic)
-        out = h.probe.watch(Vector3Stamped, topics.MASS_STAMPED)
         diagnostics = h.probe.watch(DiagnosticArray, "/diagnostics")
-        h.connect([topic for _, topic in inputs])
+        out = _connect_mass_inputs(h)
         h.publish_stream(_mass_drive_stream(node.vehicle, mass_true, with_slope))
         assert h.wait_for(lambda: len(out) > 50)
         assert all(math.isfinite(m.vector.x) and m.vector.y >= 0 for m in out)
@@ -304,12 +310,7 @@ def test_mass_node_ffrls_uses_braking_samples():
     p = node.vehicle
     h = Harness(node)
     try:
-        inputs = [(JointState, topics.POWERTRAIN), (Imu, topics.IMU), (JointState, topics.JOINT_STATES),
-                  (TwistWithCovarianceStamped, topics.SPEED), (Vector3Stamped, topics.ROAD_SLOPE_STAMPED)]
-        for msg_type, topic in inputs:
-            h.probe.publisher_for(msg_type, topic)
-        out = h.probe.watch(Vector3Stamped, topics.MASS_STAMPED)
-        h.connect([topic for _, topic in inputs])
+        out = _connect_mass_inputs(h)
         stream, v = [], 10.0
         inertia = mass_true + p.wheel_inertia / p.wheel_radius ** 2
         for i in range(8000):
