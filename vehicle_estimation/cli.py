@@ -8,6 +8,11 @@ Subcommands::
     vehicle-estimation replay BAG --record OUT [--vehicle FILE] [--params FILE]
     vehicle-estimation report BAG [--out DIR]
     vehicle-estimation experiment paper004 [--out DIR]   contrast experiment of paper 004
+    vehicle-estimation import MAPPING --out BAG [--data-dir DIR] [--rows N]
+                                                        column logs (CSV/text) -> contract bag
+    vehicle-estimation stanford [--out DIR]             real Stanford drive: state filters vs
+                                                        the linear single-track KF baseline
+    vehicle-estimation params [--write|--check README.md] the parameter reference of every node
 
 ``run`` and ``replay`` start every node as its own OS process. Ctrl-C or SIGTERM stops them
 all; the children also die with the launcher if it is killed (no orphans).
@@ -140,6 +145,26 @@ def cmd_experiment(args: argparse.Namespace) -> int:
                                      progress=not args.quiet)
 
 
+def cmd_import(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools import importer
+    argv = [args.mapping, "--out", args.out]
+    for flag, value in (("--data-dir", args.data_dir), ("--vehicle", args.vehicle), ("--rows", args.rows)):
+        if value is not None:
+            argv += [flag, str(value)]
+    return importer.main(argv)
+
+
+def cmd_stanford(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools import stanford
+    from vehicle_estimation.tools.processes import NodeGroup
+
+    def node_group(params, overrides, log_dir):
+        files = [params_file(stanford.VEHICLE)] + list(params)
+        return NodeGroup(files, namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir)
+
+    return stanford.main(args, node_group)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vehicle-estimation", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -151,6 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_node_options(p)
 
     sub.add_parser("simulate", help="simulate a drive into a bag (see: simulate --help)", add_help=False)
+    sub.add_parser("params", help="the parameter reference of every node (see: params --help)", add_help=False)
 
     p = sub.add_parser("run", help="start every node (live)")
     _add_node_options(p)
@@ -173,6 +199,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="metrics and plots of estimates against ground truth")
     p.add_argument("bag")
     p.add_argument("--out", default=None)
+
+    from vehicle_estimation.tools.importer import _units_help
+    p = sub.add_parser("import", help="import CSV/text column logs into a contract bag (see tools/importer.py)",
+                       description="Import CSV/whitespace column logs into a contract-conforming MCAP rosbag2; "
+                                   "the mapping format is documented in vehicle_estimation/tools/importer.py.",
+                       epilog=_units_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("mapping", help="mapping YAML (a path, or a name in params/import_maps/)")
+    p.add_argument("--out", required=True, help="output bag directory (must not exist)")
+    p.add_argument("--data-dir", default=None, help="folder of the data files (overrides the mapping's data_dir)")
+    p.add_argument("--vehicle", default=None, help="vehicle params file or name (overrides the mapping's vehicle)")
+    p.add_argument("--rows", type=int, default=None, help="import only the first N rows of every file")
+
+    p = sub.add_parser("stanford", help="real Stanford drive: state filters vs the linear single-track KF")
+    from vehicle_estimation.tools.stanford import add_arguments as stanford_arguments
+    stanford_arguments(p)
+    p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
     return parser
 
 
@@ -180,9 +222,12 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "simulate":
         return cmd_simulate(argparse.Namespace(), argv[1:])
+    if argv and argv[0] == "params":
+        from vehicle_estimation.tools import paramdoc
+        return paramdoc.main(argv[1:])
     args = build_parser().parse_args(argv)
     commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
-                "experiment": cmd_experiment}
+                "experiment": cmd_experiment, "import": cmd_import, "stanford": cmd_stanford}
     return commands[args.command](args)
 
 

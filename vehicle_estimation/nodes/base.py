@@ -328,7 +328,37 @@ class EstimatorNode(Node):
         value = self._declare(name, [float(v) for v in default], descriptor)
         return [float(v) for v in value]
 
-    def declare_config(self, prefix: str, defaults: Any, source: str = "") -> Any:
+    @staticmethod
+    def config_field_docs(cls: type) -> dict[str, str]:
+        """One line of documentation per dataclass field, from the field's trailing comment or
+        the class docstring's ``Attributes:`` entry (base classes included)."""
+        import inspect
+        import re
+
+        docs: dict[str, str] = {}
+        for klass in reversed(cls.__mro__):
+            try:
+                source = inspect.getsource(klass)
+            except (OSError, TypeError):
+                continue
+            doc = inspect.cleandoc(klass.__doc__ or "")
+            attrs = re.search(r"Attributes:\n(.*?)(?:\n\s*\n|\Z)", doc, re.S)
+            if attrs:
+                entry = None
+                for line in attrs.group(1).splitlines():
+                    m = re.match(r" {4}([\w, ]+):\s*(.*)", line)
+                    if m and not line.startswith(" " * 5):
+                        entry = [n.strip() for n in m.group(1).split(",")]
+                        for name in entry:
+                            docs[name] = m.group(2).strip()
+                    elif entry:
+                        for name in entry:
+                            docs[name] += " " + line.strip()
+            for m in re.finditer(r"^    (\w+): [^=\n]+=[^#\n]*#\s*(.+)$", source, re.M):
+                docs[m.group(1)] = m.group(2).strip()
+        return docs
+
+    def declare_config(self, prefix: str, defaults: Any) -> Any:
         """Declare every scalar, bool, str and tuple/list field of the dataclass instance
         ``defaults`` as ``<prefix>.<field>`` and return a validated copy with the values.
 
@@ -338,10 +368,11 @@ class EstimatorNode(Node):
         import dataclasses
 
         values: dict[str, Any] = {}
+        field_docs = self.config_field_docs(type(defaults))
         for field in dataclasses.fields(defaults):
             value = getattr(defaults, field.name)
             name = f"{prefix}.{field.name}"
-            doc = f"{type(defaults).__name__}.{field.name}{' (' + source + ')' if source else ''}"
+            doc = field_docs.get(field.name) or f"{type(defaults).__name__}.{field.name}"
             if isinstance(value, bool):
                 values[field.name] = self.declare_bool(name, value, doc)
             elif isinstance(value, (int, float)):

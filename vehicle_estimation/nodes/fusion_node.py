@@ -38,7 +38,7 @@ class FusionNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("fusion", **node_kwargs)
         # FusionConfig as fusion.* parameters (Tables 2-3 defaults where the paper gives one).
-        config = self.declare_config("fusion", FusionConfig(), "paper 003 Tables 2-3 where given")
+        config = self.declare_config("fusion", FusionConfig())
         self.config = config
         self.odometry_rate = self.declare_float(
             "odometry_rate_hz", 50.0, "Rate of estimation/odometry and the grade [Hz]", 0.1, 1000.0)

@@ -155,10 +155,10 @@ class MassNode(EstimatorNode):
             "update_rate_hz", 4.0,
             "RLS update rate; inputs are averaged over each period (paper 003: 4 Hz CAN)", 0.1, 1000.0)
         if self.method == "rls":
-            self.config = self.declare_config("mass", MassRLSConfig(), "paper 003 default where given")
+            self.config = self.declare_config("mass", MassRLSConfig())
             self.core = LongitudinalMassEstimator(self.vehicle, self.config)
         else:
-            self.config = self.declare_config("ffrls", FFRLSMassConfig(), "paper 004 default where given")
+            self.config = self.declare_config("ffrls", FFRLSMassConfig())
             self.core = FFRLSMassEstimator(self.vehicle, self.config)
         self.bias = FusionImuBias()
         self.window = UpdateWindow()

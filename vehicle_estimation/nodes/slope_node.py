@@ -105,7 +105,7 @@ class SlopeNode(EstimatorNode):
 
     def _make_core(self):
         if not hasattr(self, "config"):
-            self.config = self.declare_config(self.method, CONFIGS[self.method](), "paper 004 where given")
+            self.config = self.declare_config(self.method, CONFIGS[self.method]())
         try:
             return slope_core.SLOPE_METHODS[self.method](self.config)
         except ValueError as exc:

@@ -79,7 +79,7 @@ class StateNode(EstimatorNode):
             "Process noise diagonal per 0.01 s step (Sec. 7.1's 0.1 I as a density)")
         self.r_diag = self.declare_float_array(
             "r_diag", list(np.diag(paper.R)), "Measurement noise diagonal of [ax, ay, r] (Sec. 7.1)")
-        self.vb_config = (self.declare_config("vbackf", VBConfig(), "ref. [30] of paper 004")
+        self.vb_config = (self.declare_config("vbackf", VBConfig())
                           if self.filter_name == "vbackf" else None)
         self.core = self._make_core()
         self.bias = FusionImuBias()
