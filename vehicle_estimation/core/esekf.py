@@ -373,7 +373,7 @@ class FusionEKF:
             self._propagate(dt)
             self._t = t
             rate = self.config.nh_update_rate_hz
-            if rate is None or t - self._t_nh >= 1.0 / rate - 1e-9:
+            if rate is None or t - self._t_nh >= 1.0 / rate - 1e-6:   # float stamps near 1.7e9 s
                 self._t_nh = t
                 self._nh_update(t)
         self._t = t

@@ -425,12 +425,12 @@ class SlopePredictionModel:
             t_prev, v_prev, th_prev = self._last
             self.distance += (t - t_prev) * v_prev * math.cos(th_prev)
         self._last = (t, speed, theta)
-        if self._t and t - self._t[-1] < self.sample_period_s - 1e-9:
+        if self._t and t - self._t[-1] < self.sample_period_s - 1e-6:   # float stamps near 1.7e9 s
             return
         self._t.append(t)
         self._x.append(self.distance)
         self._theta.append(theta)
-        while self._t and t - self._t[0] > self.window_s + 1e-9:
+        while self._t and t - self._t[0] > self.window_s + 1e-6:
             self._t.popleft()
             self._x.popleft()
             self._theta.popleft()

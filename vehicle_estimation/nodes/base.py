@@ -108,6 +108,11 @@ def replay_qos() -> QoSProfile:
     )
 
 
+#: Tolerance of comparisons between stamps in float seconds: near 1.7e9 s (any ROS epoch stamp)
+#: a float64 resolves only 2.4e-7 s, so a 10 ms period can come out as 9.99976 ms.
+STAMP_TOLERANCE_S = 1e-6
+
+
 def stamp_to_sec(stamp: Any) -> float:
     """Float seconds of a builtin_interfaces/Time, via integer ns (the same float every node gets)."""
     return (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9

@@ -24,7 +24,7 @@ from vehicle_estimation.core.esekf import FusionConfig, FusionEKF
 from vehicle_estimation.core.geodesy import LocalTangentPlane
 from vehicle_estimation.core.rotations import rotmat_to_quat
 from vehicle_estimation.nodes.base import (
-    EstimatorNode, companion, finite, run_node, sec_to_stamp)
+    STAMP_TOLERANCE_S, EstimatorNode, companion, finite, run_node, sec_to_stamp)
 
 FUSION_GRADE = topics.FUSION_GRADE
 
@@ -80,10 +80,10 @@ class FusionNode(EstimatorNode):
             return
         self._missing = {m for m in self._missing if not m.startswith("initialisation")}
         self.publish_imu(t, msg, f, w)
-        if t - self._last_odom_t >= 1.0 / self.odometry_rate - 1e-9:
+        if t - self._last_odom_t >= 1.0 / self.odometry_rate - STAMP_TOLERANCE_S:
             self._last_odom_t = t
             self.publish_odometry(t)
-        if t - self._last_bias_t >= 1.0 / self.bias_rate - 1e-9:
+        if t - self._last_bias_t >= 1.0 / self.bias_rate - STAMP_TOLERANCE_S:
             self._last_bias_t = t
             self.publish_bias(msg)
 

@@ -41,8 +41,8 @@ from vehicle_estimation import topics
 from vehicle_estimation.core.mass_ffrls import FFRLSMassConfig, FFRLSMassEstimator
 from vehicle_estimation.core.mass_rls import LongitudinalMassEstimator, MassRLSConfig
 from vehicle_estimation.nodes.base import (
-    EstimatorNode, FusionImuBias, UpstreamHistory, companion, companion_value,
-    run_node)
+    STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, UpstreamHistory, companion,
+    companion_value, run_node)
 from vehicle_estimation.nodes.conversions import (
     MalformedMessage, chassis_reading, forward_speed_entry, imu_arrays, powertrain_reading)
 
@@ -255,7 +255,7 @@ class MassNode(EstimatorNode):
             window.add(t, brake, pt.gear, vx=speed, slope=slope_item.value if slope_ok else 0.0,
                        drive_force=pt.drive_force, engine_torque=pt.engine_torque,
                        engine_speed=pt.engine_speed, engine_load=pt.engine_load)
-        if not math.isnan(window.start) and t - window.start >= 1.0 / self.update_rate - 1e-9:
+        if not math.isnan(window.start) and t - window.start >= 1.0 / self.update_rate - STAMP_TOLERANCE_S:
             slope = window.mean("slope")
             ax = self._window_accel(window, slope)
             # No update on a guessed slope: a 1 % grade error is a 10 % error in phi at 1 m/s^2.
@@ -268,7 +268,7 @@ class MassNode(EstimatorNode):
                                engine_load=window.mean("engine_load"), gear=window.gear,
                                brake_torque=window.brake if self.method == "rls" else window.brake_mean)
             window.clear()
-        if t - self._last_pub >= 1.0 / self.rate - 1e-9:
+        if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
 

@@ -31,8 +31,8 @@ from std_msgs.msg import Float64
 from vehicle_estimation import topics
 from vehicle_estimation.core import slope as slope_core
 from vehicle_estimation.nodes.base import (
-    EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
-    run_node)
+    STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion,
+    companion_value, run_node)
 from vehicle_estimation.nodes.conversions import forward_speed_entry, imu_arrays, planar_velocity_entry
 
 METHODS = tuple(slope_core.SLOPE_METHODS)
@@ -156,7 +156,7 @@ class SlopeNode(EstimatorNode):
             if velocity is not None and not self.core.step(t, ax, velocity[0],
                                                            yaw_rate=float(w[2]), vy=velocity[1]):
                 self.reject("slope:rejected_by_core")
-        if t - self._last_pub >= 1.0 / self.rate - 1e-9:
+        if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
 

@@ -44,8 +44,8 @@ from vehicle_estimation.core.ckf import VehicleStateCKF, VehicleStateConfig
 from vehicle_estimation.core.vbackf import VBConfig, VehicleStateVBACKF
 from vehicle_estimation.core.vehicle_model import VehicleInputs
 from vehicle_estimation.nodes.base import (
-    EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion, companion_value,
-    run_node, sec_to_stamp)
+    STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion,
+    companion_value, run_node, sec_to_stamp)
 from vehicle_estimation.nodes.conversions import MalformedMessage, chassis_reading, imu_arrays
 
 FILTERS = ("ckf", "vbackf")
@@ -166,7 +166,7 @@ class StateNode(EstimatorNode):
                 return
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
-        if t - self._last_pub >= 1.0 / self.rate - 1e-9:
+        if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_state(t)
 
