@@ -145,15 +145,6 @@ def cmd_experiment(args: argparse.Namespace) -> int:
                                      progress=not args.quiet)
 
 
-def cmd_import(args: argparse.Namespace) -> int:
-    from vehicle_estimation.tools import importer
-    argv = [args.mapping, "--out", args.out]
-    for flag, value in (("--data-dir", args.data_dir), ("--vehicle", args.vehicle), ("--rows", args.rows)):
-        if value is not None:
-            argv += [flag, str(value)]
-    return importer.main(argv)
-
-
 def cmd_stanford(args: argparse.Namespace) -> int:
     from vehicle_estimation.tools import stanford
     from vehicle_estimation.tools.processes import NodeGroup
@@ -200,16 +191,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bag")
     p.add_argument("--out", default=None)
 
-    from vehicle_estimation.tools.importer import _units_help
-    p = sub.add_parser("import", help="import CSV/text column logs into a contract bag (see tools/importer.py)",
-                       description="Import CSV/whitespace column logs into a contract-conforming MCAP rosbag2; "
-                                   "the mapping format is documented in vehicle_estimation/tools/importer.py.",
-                       epilog=_units_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("mapping", help="mapping YAML (a path, or a name in params/import_maps/)")
-    p.add_argument("--out", required=True, help="output bag directory (must not exist)")
-    p.add_argument("--data-dir", default=None, help="folder of the data files (overrides the mapping's data_dir)")
-    p.add_argument("--vehicle", default=None, help="vehicle params file or name (overrides the mapping's vehicle)")
-    p.add_argument("--rows", type=int, default=None, help="import only the first N rows of every file")
+    sub.add_parser("import", help="import CSV/text column logs into a contract bag (see: import --help)",
+                   add_help=False)
 
     p = sub.add_parser("stanford", help="real Stanford drive: state filters vs the linear single-track KF")
     from vehicle_estimation.tools.stanford import add_arguments as stanford_arguments
@@ -222,12 +205,15 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "simulate":
         return cmd_simulate(argparse.Namespace(), argv[1:])
+    if argv and argv[0] == "import":
+        from vehicle_estimation.tools import importer
+        return importer.main(argv[1:])
     if argv and argv[0] == "params":
         from vehicle_estimation.tools import paramdoc
         return paramdoc.main(argv[1:])
     args = build_parser().parse_args(argv)
     commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
-                "experiment": cmd_experiment, "import": cmd_import, "stanford": cmd_stanford}
+                "experiment": cmd_experiment, "stanford": cmd_stanford}
     return commands[args.command](args)
 
 

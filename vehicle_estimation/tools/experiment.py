@@ -207,7 +207,7 @@ def run_experiment(experiment: Experiment, out: Path, node_group: Callable[[Sequ
     print(f"[{steps}/{steps}] comparison -> {out / 'comparison.json'}")
     print(format_comparison(comparison))
     with open(out / "comparison.json", "w", encoding="utf-8") as handle:
-        json.dump(report._clean(comparison), handle, indent=2)
+        json.dump(report.json_safe(comparison), handle, indent=2)
         handle.write("\n")
     return 0 if lossless else 1
 

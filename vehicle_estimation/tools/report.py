@@ -124,12 +124,12 @@ def read_bag(bag_path: str | Path, wanted: Sequence[str]) -> dict[str, Series]:
 
 
 # --------------------------------------------------------------------- helpers
-def _clean(value: Any) -> Any:
+def json_safe(value: Any) -> Any:
     """JSON-safe: NaN/inf -> None, NumPy scalars -> Python."""
     if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
+        return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, (np.integer,)):
         return int(value)
     if isinstance(value, (float, np.floating)):
@@ -398,7 +398,7 @@ def make_report(bag_path: str | Path, out_dir: str | Path, *, warmup_s: float = 
     data = read_bag(bag_path, WANTED)
     groups, series = compute_groups(data, warmup_s)
     figures = [PLOTTERS[name](series[name], out) for name in groups if name in series]
-    report = _clean({
+    report = json_safe({
         "bag": Path(bag_path).name,
         "warmup_s": float(warmup_s),
         "topics_found": sorted(data),

@@ -51,6 +51,7 @@ import numpy as np
 
 from vehicle_estimation import topics as T
 from vehicle_estimation.tools import metrics
+from vehicle_estimation.tools.report import json_safe
 
 MAPPING = "stanford_sideslip_2014"
 VEHICLE = "stanford_2014"
@@ -323,21 +324,11 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     }
     result["figure"] = plot(series, ref, out / "comparison.png", t0, start)
     with open(out / "comparison.json", "w", encoding="utf-8") as handle:
-        json.dump(_clean(result), handle, indent=2)
+        json.dump(json_safe(result), handle, indent=2)
         handle.write("\n")
     return result
 
 
-def _clean(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    return value
 
 
 # --------------------------------------------------------------------- output
