@@ -22,6 +22,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml", "README.md"]),
         (f"share/{PACKAGE}/params", glob("params/*.yaml")),
+        (f"share/{PACKAGE}/params/import_maps", glob("params/import_maps/*.yaml")),
     ],
     python_requires=">=3.10",
     install_requires=["setuptools", "numpy", "scipy", "pyyaml", "rosbags>=0.10", "matplotlib"],

@@ -51,6 +51,8 @@ def test_colcon_installs_executables_and_params(workspace):
         assert (workspace / "lib" / "vehicle_estimation" / node).is_file(), node
     params = sorted(p.name for p in (workspace / "share" / "vehicle_estimation" / "params").glob("*.yaml"))
     assert {"estimation.yaml", "sedan_d_class.yaml", "audi_a4.yaml", "heavy_truck.yaml"} <= set(params)
+    maps = workspace / "share" / "vehicle_estimation" / "params" / "import_maps"
+    assert (maps / "stanford_sideslip_2014.yaml").is_file()
     assert (workspace / "share" / "ament_index" / "resource_index" / "packages" / "vehicle_estimation").is_file()
 
 
