@@ -33,7 +33,7 @@ setup(
             "ros-jazzy-common-interfaces",
             "torch==2.13.0",
         ],
-        "test": ["pytest", "colcon-common-extensions"],
+        "test": ["pytest", "colcon-common-extensions", "mypy", "ruff"],
     },
     zip_safe=True,
     maintainer="vehicle_estimation developers",

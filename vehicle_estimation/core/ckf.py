@@ -146,10 +146,10 @@ class CubatureKalmanFilter:
 
     def normalised_innovation_squared(self) -> float:
         """NIS of the last update, ``nu^T P_zz^-1 nu`` (chi-square with m dof if consistent)."""
-        if self.last_innovation is None:
+        nu, S = self.last_innovation, self.last_innovation_covariance
+        if nu is None or S is None:   # set together by correct()
             return float("nan")
-        nu = self.last_innovation
-        return float(nu @ np.linalg.solve(self.last_innovation_covariance, nu))
+        return float(nu @ np.linalg.solve(S, nu))
 
 
 # ----------------------------------------------------------------------------------------
@@ -232,13 +232,20 @@ class VehicleStateCKF:
         def h(X, inputs):
             return vm.measurement(X, inputs, params)
 
-        self._ckf = CubatureKalmanFilter(f, h, cfg.Q, cfg.R, self._x0(None), cfg.P0)
+        self._ckf = self._make_filter(f, h)
         self.t: Optional[float] = None
         self.initialised = False
         self.rejected = {"nonfinite_measurement": 0, "invalid_input": 0, "stamp_not_increasing": 0}
         self.reinitialisations = 0
         self.last_event = ""
         self.updates = 0
+
+    def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
+        """Factory hook: the filter on the model closures ``f``, ``h`` (called once by
+        ``__init__`` after ``params``/``config`` are validated). Default: the plain CKF with
+        the configured ``Q``, ``R``, ``x0`` and ``P0``."""
+        cfg = self.config
+        return CubatureKalmanFilter(f, h, cfg.Q, cfg.R, self._x0(None), cfg.P0)
 
     # -- helpers -------------------------------------------------------------------------
     def _x0(self, vx0: Optional[float]) -> np.ndarray:
@@ -290,6 +297,7 @@ class VehicleStateCKF:
                 self._ckf.reset(self._x0(vx0), self.config.P0)
             self.initialised = True
         else:
+            assert self.t is not None   # initialised implies a stamp
             dt = t - self.t
             Q = self.config.Q * (dt / self.config.nominal_dt) if self.config.scale_q_with_dt else None
             self._ckf.predict(dt, inputs, Q=Q)

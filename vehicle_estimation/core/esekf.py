@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
@@ -230,7 +231,8 @@ class FusionConfig:
         bad = set(d) - names
         if bad:
             raise ValueError(f"unknown FusionConfig field(s): {sorted(bad)}")
-        cfg = cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+        kwargs: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
+        cfg = cls(**kwargs)
         cfg.validate()
         return cfg
 
@@ -259,7 +261,7 @@ class FusionEKF:
         self._eye15 = np.eye(N_ERR)
         self._eye3 = np.eye(3)
         self._di = np.arange(N_ERR)
-        self._qd_dt = None
+        self._qd_dt: float | None = None
         self._qd = np.zeros(N_ERR)
         self.reset()
 
@@ -276,17 +278,17 @@ class FusionEKF:
         self._Rm = self._Rm0.copy()   # imu_link -> base_link (mounting)
         self._P = np.diag(self._p0_diag)
         self._F = np.eye(N_ERR)
-        self._t = None                # last IMU stamp
-        self._f_prev = None           # last raw IMU sample (used over the next interval, Eq. (28))
-        self._w_prev = None
-        self._t_gnss = None
-        self._t_speed = None
-        self._last_speed = None
-        self._last_gnss = None
+        self._t: float | None = None  # last IMU stamp
+        self._f_prev: np.ndarray | None = None  # last raw IMU sample (used over the next interval, Eq. (28))
+        self._w_prev: np.ndarray | None = None
+        self._t_gnss: float | None = None
+        self._t_speed: float | None = None
+        self._last_speed: float | None = None
+        self._last_gnss: np.ndarray | None = None
         self._t_nh = -math.inf
         self._a_lp = np.zeros(3)      # low-passed gravity-free acceleration (ENU)
         self._w_lp = np.zeros(3)      # low-passed compensated angular rate (FLU)
-        self._hint = None
+        self._hint: bool | None = None
         self._align_f: list = []
         self._align_w: list = []
         self._motion: list = []          # (t, f, w, CAN speed) while moving, for in-motion alignment
@@ -298,7 +300,7 @@ class FusionEKF:
                          "update_numerical": 0}
         self.events = {"imu_gap": 0, "align_restart": 0, "aligned_in_motion": 0, "gnss_covariance_reopened": 0,
                        "speed_covariance_reopened": 0, "heading_initialised": 0}
-        self.heading_sigma_at_init = None
+        self.heading_sigma_at_init: float | None = None
 
     @property
     def initialized(self) -> bool:
@@ -317,7 +319,8 @@ class FusionEKF:
         """True/False from the hint or a fresh CAN speed; None when unknown."""
         if self._hint is not None:
             return self._hint
-        if self._t_speed is not None and t - self._t_speed <= self.config.speed_timeout_s:
+        if (self._t_speed is not None and self._last_speed is not None   # set together
+                and t - self._t_speed <= self.config.speed_timeout_s):
             return abs(self._last_speed) <= self.config.stationary_speed_threshold
         return None
 
@@ -367,6 +370,7 @@ class FusionEKF:
         if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
             self._align_step(t, f, w)
         else:
+            assert self._t is not None   # set by the first sample (alignment)
             dt = t - self._t
             if dt > self.config.max_imu_dt_s:
                 self.events["imu_gap"] += 1
@@ -417,6 +421,7 @@ class FusionEKF:
         f = a_b + R^T g_up + b.  The gyro bias cannot be averaged out while turning, so it
         starts at zero with ``in_motion_gyro_bias_sigma``."""
         c = self.config
+        assert self._last_speed is not None   # only called on a fresh CAN speed
         self._motion.append((t, f, w, float(self._last_speed)))
         if t - self._motion[0][0] < c.in_motion_window_s:
             return
@@ -485,6 +490,7 @@ class FusionEKF:
         """INS mechanisation (Sec. 5.2) and covariance propagation (Eqs. (33)-(36))."""
         c = self.config
         R = self._R
+        assert self._f_prev is not None and self._w_prev is not None   # only after the first sample
         s_b = self._f_prev - self._ba                     # Eq. (22)
         w_b = self._w_prev - self._bg
         s_n = R @ s_b                                     # Eq. (25)
@@ -668,6 +674,7 @@ class FusionEKF:
         if self.status == STATUS_WAIT_HEADING:
             return self._heading_step(t, z, W)
 
+        assert self._t is not None   # running: IMU samples were processed
         dt = t - self._t
         H = np.zeros((3, N_ERR))
         H[:, IP:IP + 3] = self._eye3

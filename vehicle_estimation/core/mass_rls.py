@@ -393,6 +393,7 @@ class ForgettingMassEstimator:
         """True when the last ``convergence_window`` updates have a coefficient of variation
         below ``convergence_max_cv`` and moved by less than ``convergence_max_rel_change``."""
         window = self._window
+        assert window.maxlen is not None   # built with maxlen=convergence_window
         if len(window) < window.maxlen:
             return False
         n = len(window)
@@ -526,6 +527,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             force = p.driveline_efficiency * float(engine_torque) * G           # Eq. (1) F_p
             inertia = wheel_inertia + p.engine_inertia * G * G
         else:
+            assert self.regression is not None   # have_reg
             force = self.regression.torque(float(engine_load), float(engine_speed)) * G      # Eq. (49), eta = 1
             inertia = wheel_inertia + p.engine_inertia * G * G
         if not force > cfg.min_propulsion_force:

@@ -574,6 +574,8 @@ class CubicPredictionSlopeObserver(_SlopeObserverBase):
     instead uses the Kalman gain with the same prediction model (no cubic term).
     """
 
+    config: CubicPredictionSlopeConfig
+
     def __init__(self, config: Optional[CubicPredictionSlopeConfig] = None):
         config = CubicPredictionSlopeConfig() if config is None else config
         self.config = config
@@ -601,6 +603,7 @@ class CubicPredictionSlopeObserver(_SlopeObserverBase):
         """``u_r = [a_x,acc + r v_y, u2]`` (Eqs. 21-22); called once per prediction with the
         posterior of the previous step in ``self._x`` and its stamp in ``self.t``."""
         speed, theta = float(self._x[0]), float(self._x[1])
+        assert self.t is not None and self._t0 is not None   # only called after the first sample
         if self.t - self._t0 < self.config.prediction_warmup_s:
             self.slope_rate = 0.0
         else:

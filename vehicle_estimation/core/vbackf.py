@@ -331,7 +331,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
                 R = self.R0
             try:
                 self.correct(innovation, Czz + R, Pxz)
-                ok = np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))
+                ok = bool(np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P)))
             except np.linalg.LinAlgError:
                 ok = False
         if not ok:  # not even the plain correction: keep the prediction
@@ -345,8 +345,8 @@ class VehicleStateVBACKF(VehicleStateCKF):
 
     Everything but the filter is :class:`~vehicle_estimation.core.ckf.VehicleStateCKF`
     (model, Sec. 7.1 tuning, stamps, gap re-initialisation, rejection counters): the
-    :class:`CubatureKalmanFilter` it builds is replaced by a :class:`VariationalBayesCKF`
-    with the same ``f``, ``h``, ``Q``, ``R`` (= ``R_0``), ``x0`` and ``P0``.
+    filter it builds (:meth:`_make_filter`) is a :class:`VariationalBayesCKF` instead of
+    the plain CKF, with the same ``f``, ``h``, ``Q``, ``R`` (= ``R_0``), ``x0`` and ``P0``.
 
     Defaults (Sec. 7.1): ``P0 = 10 I``, ``Q = 0.1 I`` per ``tau``, ``R_0 = diag[4e-2, 4e-2,
     6e-5]``, ``tau = 0.01`` s; not in the paper: ``rho = 1 - exp(-4)`` per ``tau``,
@@ -368,19 +368,24 @@ class VehicleStateVBACKF(VehicleStateCKF):
         vb: :class:`VBConfig`; ``nominal_dt=None`` (default) takes ``config.nominal_dt``.
     """
 
+    _ckf: VariationalBayesCKF   # built by _make_filter
+
     def __init__(self, params: VehicleParams, config: Optional[VehicleStateConfig] = None,
                  vb: Optional[VBConfig] = None):
+        # Read by _make_filter, which super().__init__ calls once the config is validated.
+        self._vb_requested = VBConfig() if vb is None else vb
         super().__init__(params, config)
-        vb = VBConfig() if vb is None else vb
+
+    def _make_filter(self, f: Callable, h: Callable) -> VariationalBayesCKF:
+        """The :class:`VariationalBayesCKF` on the model closures, with the configured ``Q``,
+        ``R`` (= ``R_0``), ``x0`` and ``P0``; sets :attr:`vb_config`."""
+        vb = self._vb_requested
         if vb.nominal_dt is None:
             vb = dataclasses.replace(vb, nominal_dt=self.config.nominal_dt)
         vb.validate()
         self.vb_config = vb
-        # VehicleStateCKF has no factory hook for its filter: rebuild it around the same
-        # model closures (f, h) it created, as a VariationalBayesCKF.
-        plain = self._ckf
-        self._ckf = VariationalBayesCKF(plain.f, plain.h, plain.Q, plain.R, plain.x, plain.P,
-                                        vb=vb, vectorized=plain.vectorized)
+        cfg = self.config
+        return VariationalBayesCKF(f, h, cfg.Q, cfg.R, self._x0(None), cfg.P0, vb=vb)
 
     def step(self, t: float, inputs, z) -> bool:
         """As :meth:`VehicleStateCKF.step`, with the variational measurement update."""

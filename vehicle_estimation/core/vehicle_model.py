@@ -235,8 +235,8 @@ def _fallback_fx(inputs: VehicleInputs, fz, params: VehicleParams):
     t = np.zeros(4)
     if inputs.drive_torque is not None:
         axle = params.driven_axle
-        mask = {"front": (1, 1, 0, 0), "rear": (0, 0, 1, 1), "all": (1, 1, 1, 1)}[axle]
-        mask = np.asarray(mask, dtype=float)
+        mask = np.asarray({"front": (1, 1, 0, 0), "rear": (0, 0, 1, 1), "all": (1, 1, 1, 1)}[axle],
+                          dtype=float)
         t = t + inputs.drive_torque * mask / mask.sum()
     if inputs.brake_torques is not None:
         t = t - inputs.brake_torques
