@@ -33,6 +33,21 @@ from ..vehicle import VehicleParams
 
 
 # ----------------------------------------------------------------------------- engine map
+def _dugoff_lateral(cornering_stiffness: float, tan_alpha: float, sg: float, mu_fz: float,
+                    slip_stiffness: float) -> float:
+    """Dugoff lateral tyre force (paper 004 Eq. 9) of one wheel, scalar, for the 500 Hz loop.
+
+    ``sg`` is the slip term Fx / (Cs - Fx) the loop derives from the longitudinal force,
+    ``mu_fz`` the friction limit mu·Fz of the wheel."""
+    force = cornering_stiffness * tan_alpha / (1 + sg)
+    den = 2.0 * math.sqrt((slip_stiffness * sg) ** 2 + (cornering_stiffness * tan_alpha) ** 2)
+    if den > 0:
+        lam = mu_fz * (1 + sg) / den
+        if lam < 1.0:
+            force *= (2.0 - lam) * lam
+    return force
+
+
 def full_load_torque(vp: VehicleParams, w: float) -> float:
     """Full-load (wide-open throttle) brake torque before friction [N m] at engine speed w."""
     wi, wm, t0 = vp.engine_idle_speed, vp.engine_max_speed, vp.engine_max_torque
@@ -183,7 +198,7 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
     sFz = [S["Fz1"], S["Fz2"], S["Fz3"], S["Fz4"]]
     svref, ss, slat, sclutch = S["v_ref"], S["s"], S["lat_err"], S["clutch"]
 
-    sin, cos, atan2, atan, sqrt, tan = math.sin, math.cos, math.atan2, math.atan, math.sqrt, math.tan
+    sin, cos, atan2, atan, tan = math.sin, math.cos, math.atan2, math.atan, math.tan
     w1 = w2 = w3 = w4 = 0.0
     Fz1 = Fz2 = Fz_static_f
     Fz3 = Fz4 = Fz_static_r
@@ -432,30 +447,10 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
                     ta2 = tan(delta - atan2(vfy, vx + hbf))
                     ta3 = tan(atan2(vry, vx - hbr))
                     ta4 = tan(atan2(vry, vx + hbr))
-                    Fy1 = Caf * ta1 / (1 + sg1)
-                    den = 2.0 * sqrt((Cs * sg1) ** 2 + (Caf * ta1) ** 2)
-                    if den > 0:
-                        lam = mu * Fz1 * (1 + sg1) / den
-                        if lam < 1.0:
-                            Fy1 *= (2.0 - lam) * lam
-                    Fy2 = Caf * ta2 / (1 + sg2)
-                    den = 2.0 * sqrt((Cs * sg2) ** 2 + (Caf * ta2) ** 2)
-                    if den > 0:
-                        lam = mu * Fz2 * (1 + sg2) / den
-                        if lam < 1.0:
-                            Fy2 *= (2.0 - lam) * lam
-                    Fy3 = Car * ta3 / (1 + sg3)
-                    den = 2.0 * sqrt((Cs * sg3) ** 2 + (Car * ta3) ** 2)
-                    if den > 0:
-                        lam = mu * Fz3 * (1 + sg3) / den
-                        if lam < 1.0:
-                            Fy3 *= (2.0 - lam) * lam
-                    Fy4 = Car * ta4 / (1 + sg4)
-                    den = 2.0 * sqrt((Cs * sg4) ** 2 + (Car * ta4) ** 2)
-                    if den > 0:
-                        lam = mu * Fz4 * (1 + sg4) / den
-                        if lam < 1.0:
-                            Fy4 *= (2.0 - lam) * lam
+                    Fy1 = _dugoff_lateral(Caf, ta1, sg1, mu * Fz1, Cs)
+                    Fy2 = _dugoff_lateral(Caf, ta2, sg2, mu * Fz2, Cs)
+                    Fy3 = _dugoff_lateral(Car, ta3, sg3, mu * Fz3, Cs)
+                    Fy4 = _dugoff_lateral(Car, ta4, sg4, mu * Fz4, Cs)
                     Fxf = Fx1 + Fx2
                     Fyf = Fy1 + Fy2
                     FX = Fxf * cd + Fx3 + Fx4 - Fyf * sd
