@@ -258,11 +258,18 @@ def build_streams(result) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
 
 
 def write_bag(result, path) -> Path:
-    """Write every topic in global stamp order to a new MCAP rosbag2 directory ``path``."""
+    """Write every topic of a simulation in global stamp order to a new MCAP rosbag2 directory."""
+    if Path(path).exists():          # before the streams are built: that is the slow part
+        raise FileExistsError(f"{path} exists")
+    return write_streams(build_streams(result), path)
+
+
+def write_streams(streams, path) -> Path:
+    """Write ``(topic, msgtype, stamps_ns, serialized rows)`` streams in global stamp order (log
+    time = header stamp) to a new MCAP rosbag2 directory ``path``."""
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists")
-    streams = build_streams(result)
     ts = typestore()
     # global order: by stamp, ties by topic order (stable sort)
     stamps = np.concatenate([s[2] for s in streams])

@@ -761,24 +761,11 @@ def build_streams(signals: Mapping[str, Signal], *, gravity_removed: bool = Fals
 
 
 def write_streams(streams, path: Path) -> dict[str, int]:
-    """Write every stream in global stamp order (log time = header stamp) to a new MCAP bag."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from vehicle_estimation.sim.bag import typestore
+    """Write every stream in global stamp order (log time = header stamp) to a new MCAP bag,
+    under absolute topic names; returns the message count per topic."""
+    from vehicle_estimation.sim import bag as simbag
 
-    if path.exists():
-        raise FileExistsError(f"{path} exists")
-    ts = typestore()
-    stamps = np.concatenate([s[2] for s in streams])
-    which = np.concatenate([np.full(s[2].size, i, dtype=np.int32) for i, s in enumerate(streams)])
-    row = np.concatenate([np.arange(s[2].size, dtype=np.int64) for s in streams])
-    order = np.lexsort((which, stamps))
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        conns = [writer.add_connection("/" + topic, msgtype, typestore=ts) for topic, msgtype, _, _ in streams]
-        mats = [s[3] for s in streams]
-        write = writer.write
-        for i in order.tolist():
-            w = which[i]
-            write(conns[w], int(stamps[i]), mats[w][row[i]].tobytes())
+    simbag.write_streams([("/" + topic, msgtype, ns, rows) for topic, msgtype, ns, rows in streams], path)
     return {topic: int(s.size) for topic, _, s, _ in streams}
 
 
