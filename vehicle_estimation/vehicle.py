@@ -23,6 +23,41 @@ import yaml
 GRAVITY = 9.80665  # m/s², standard gravity
 
 
+def dataclass_from_mapping(cls: Any, values: Mapping[str, Any], unknown: str) -> Any:
+    """``cls(**values)`` from a flat mapping (ROS parameters, YAML), each value coerced to the
+    type of its field's default: float, int, str, a bool only as a bool, a tuple or list of
+    floats (a list may be None for empty). An unknown key raises ``ValueError(unknown)``,
+    formatted with ``key``; the instance is validated before it is returned."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in values.items():
+        field = fields.get(key)
+        if field is None:
+            raise ValueError(unknown.format(key=key))
+        default: Any = None
+        if field.default is not dataclasses.MISSING:
+            default = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            default = field.default_factory()
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f"{key} must be a bool, got {value!r}")
+        elif isinstance(default, int):
+            value = int(value)
+        elif isinstance(default, str):
+            value = str(value)
+        elif isinstance(default, tuple):
+            value = tuple(float(v) for v in value)
+        elif isinstance(default, list):
+            value = [float(v) for v in (value or [])]
+        else:
+            value = float(value)
+        kwargs[key] = value
+    instance = cls(**kwargs)
+    instance.validate()
+    return instance
+
+
 @dataclasses.dataclass(frozen=True)
 class VehicleParams:
     """Physical description of one vehicle (all SI).
@@ -132,21 +167,7 @@ class VehicleParams:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "VehicleParams":
         """Build from a flat mapping of field name to value; unknown keys are an error."""
-        known = {f.name: f for f in dataclasses.fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in values.items():
-            if key not in known:
-                raise ValueError(f"unknown vehicle parameter 'vehicle.{key}'")
-            if key == "gear_ratios":
-                value = tuple(float(v) for v in value)
-            elif key in ("name", "driven_axle"):
-                value = str(value)
-            else:
-                value = float(value)
-            kwargs[key] = value
-        params = cls(**kwargs)
-        params.validate()
-        return params
+        return dataclass_from_mapping(cls, values, "unknown vehicle parameter 'vehicle.{key}'")
 
     def as_mapping(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)

@@ -63,7 +63,7 @@ from typing import Any
 
 from vehicle_estimation.core.mass_rls import (
     ForgettingMassEstimator, _finite, predict_gear, validate_forgetting_fields)
-from vehicle_estimation.vehicle import VehicleParams
+from vehicle_estimation.vehicle import VehicleParams, dataclass_from_mapping
 
 #: The paper's sampling time tau (Sec. 7.1), at which lambda_m = 0.998 was tuned [s].
 PAPER_SAMPLE_PERIOD_S = 0.01
@@ -157,22 +157,7 @@ class FFRLSMassConfig:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> FFRLSMassConfig:
         """Build from a flat mapping (e.g. ROS parameters); unknown keys are an error."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in values.items():
-            if key not in known:
-                raise ValueError(f"unknown FFRLS mass estimator parameter {key!r}")
-            if key == "rotating_inertia_correction":
-                if not isinstance(value, bool):
-                    raise ValueError(f"rotating_inertia_correction must be a bool, got {value!r}")
-            elif key == "convergence_window":
-                value = int(value)
-            else:
-                value = float(value)
-            kwargs[key] = value
-        config = cls(**kwargs)
-        config.validate()
-        return config
+        return dataclass_from_mapping(cls, values, "unknown FFRLS mass estimator parameter {key!r}")
 
 
 class FFRLSMassEstimator(ForgettingMassEstimator):

@@ -35,7 +35,7 @@ import dataclasses
 import math
 from typing import Any, Callable, Mapping, Sequence
 
-from vehicle_estimation.vehicle import VehicleParams
+from vehicle_estimation.vehicle import VehicleParams, dataclass_from_mapping
 
 RPM_PER_RAD_S = 30.0 / math.pi
 
@@ -162,23 +162,7 @@ class MassRLSConfig:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "MassRLSConfig":
         """Build from a flat mapping (e.g. ROS parameters); unknown keys are an error."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in values.items():
-            if key not in known:
-                raise ValueError(f"unknown mass estimator parameter {key!r}")
-            if key == "torque_regression":
-                value = [float(v) for v in (value or [])]
-            elif key in ("drive_force_kind", "torque_regression_speed_unit"):
-                value = str(value)
-            elif key == "convergence_window":
-                value = int(value)
-            else:
-                value = float(value)
-            kwargs[key] = value
-        config = cls(**kwargs)
-        config.validate()
-        return config
+        return dataclass_from_mapping(cls, values, "unknown mass estimator parameter {key!r}")
 
 
 class RecursiveLeastSquares:
