@@ -664,6 +664,7 @@ def run_node(node_factory: Callable[[], EstimatorNode], args: list[str] | None =
     executor = make_executor()
     executor.add_node(node)
     never = Future()
+    profiler = _start_profiler()
     try:
         # spin_until_future_complete in slices rather than spin(): the events executor's
         # spin() busy-waits in this rclpy release, and slices let us notice a shutdown.
@@ -672,10 +673,34 @@ def run_node(node_factory: Callable[[], EstimatorNode], args: list[str] | None =
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if profiler is not None:
+            _dump_profile(profiler, node.get_name())
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def _start_profiler() -> Any:
+    """cProfile of the whole spin when ``VEHICLE_ESTIMATION_PROFILE_DIR`` is set (development:
+    ``python -m pstats DIR/<node>.prof`` shows where a node's time goes)."""
+    import os
+    if not os.environ.get("VEHICLE_ESTIMATION_PROFILE_DIR"):
+        return None
+    import cProfile
+    import time
+    profiler = cProfile.Profile(time.process_time)   # CPU time: idle waiting is not a cost
+    profiler.enable()
+    return profiler
+
+
+def _dump_profile(profiler: Any, name: str) -> None:
+    import os
+    from pathlib import Path
+    profiler.disable()
+    out = Path(os.environ["VEHICLE_ESTIMATION_PROFILE_DIR"])
+    out.mkdir(parents=True, exist_ok=True)
+    profiler.dump_stats(str(out / f"{name}.prof"))
 
 
 class FusionImuBias:

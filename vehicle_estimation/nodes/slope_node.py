@@ -12,7 +12,7 @@ Methods (parameter ``method``):
 Each method's tuning is declared as ``<method>.*`` parameters (its config dataclass).
 
 Subscribes: ``imu/data`` (sensor-data QoS, the trigger), ``vehicle/speed`` (sensor-data QoS,
-speed fallback), ``estimation/imu`` (fusion bias), ``estimation/fusion/road_grade``,
+speed fallback), ``estimation/imu_bias`` (fusion bias), ``estimation/fusion/road_grade``,
 ``estimation/vehicle_state`` (vx and vy from the state node, paper 004 Fig. 1: slope <- state).
 Publishes ``estimation/road_slope`` (std_msgs/Float64, rad, +uphill) and
 ``estimation/road_slope_stamped`` (geometry_msgs/Vector3Stamped: x = slope, y = variance,

@@ -267,8 +267,9 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
             next_tick = t_start + tick_ns
             play_ids = {c.id: _norm(c.topic) for c in play}
             for conn, timestamp, data in reader.messages(connections=play + truth):
-                if conn.id in truth_conns:
-                    writer.write(truth_conns[conn.id], timestamp, data)
+                if conn.id not in play_ids:   # ground truth: copied when recording
+                    if conn.id in truth_conns:
+                        writer.write(truth_conns[conn.id], timestamp, data)
                     continue
                 while timestamp >= next_tick:
                     _tick(driver, executor, group, next_tick, stall_timeout)
