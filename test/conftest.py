@@ -37,3 +37,5 @@ if "VEHICLE_ESTIMATION_TEST_DOMAIN" not in os.environ:
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.pop("ROS_STATIC_PEERS", None)
 os.environ.setdefault("MPLBACKEND", "Agg")
+# Node logs and the launcher's persisted estimator state go to ROS_HOME: keep them out of ~/.ros.
+os.environ["ROS_HOME"] = tempfile.mkdtemp(prefix="vehicle_estimation_test_ros_home_")

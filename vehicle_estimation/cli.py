@@ -45,8 +45,18 @@ def _add_node_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
 
 
+def _default_state_dir() -> str:
+    import os
+    return str(Path(os.environ.get("ROS_HOME") or Path.home() / ".ros") / "vehicle_estimation")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
-    group = _node_group(args)
+    overrides = {}
+    if args.state_dir:
+        # One state file per namespace: two vehicles on one computer never share an estimate.
+        ns = args.namespace.strip("/").replace("/", "_") or "root"
+        overrides["mass"] = {"persist.path": str(Path(args.state_dir) / f"mass_{ns}.json")}
+    group = _node_group(args, overrides)
     stopping = {"flag": False}
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -68,7 +78,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 node.restarts += 1
                 print(f"{node.spec.name} exited with {code}; respawning (restart {node.restarts})",
                       file=sys.stderr)
-                node.start(dict(__import__("os").environ))
+                group.restart(node)
             time.sleep(0.2)
     finally:
         group.stop()
@@ -171,6 +181,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="start every node (live)")
     _add_node_options(p)
+    p.add_argument("--state-dir", default=_default_state_dir(),
+                   help="where the mass node persists its estimate, so that a restart resumes it "
+                        "(default: $ROS_HOME/vehicle_estimation, else ~/.ros/vehicle_estimation); "
+                        "'' turns persistence off")
 
     p = sub.add_parser("replay", help="play a bag through every node and record the estimates")
     p.add_argument("bag")

@@ -261,6 +261,9 @@ class EstimatorNode(Node):
         self._last_stamp_by_topic: dict[str, float] = {}
         self._missing: set[str] = set()
         self._pending_sync: DiagnosticStatus | None = None
+        # The player's per-topic counts in the first sync this process sees: zero at a normal
+        # start; the counts so far when the launcher respawns this node mid-replay.
+        self._sync_base: dict[str, int] | None = None
         self._last_sync: DiagnosticStatus | None = None
         self._last_sync_time = -math.inf
         self._reack_timer = None
@@ -528,11 +531,12 @@ class EstimatorNode(Node):
             return
         tick_ns = int(msg.message)  # the player's tick, integer nanoseconds of bag time
         tick = tick_ns * 1e-9
-        for kv in msg.values:
-            if kv.key.startswith(TX_PREFIX):
-                topic = kv.key[len(TX_PREFIX):]
-                if topic in self._rx and self._rx[topic] < int(kv.value):
-                    return  # not everything published before this sync has arrived yet
+        sent = {kv.key[len(TX_PREFIX):]: int(kv.value) for kv in msg.values if kv.key.startswith(TX_PREFIX)}
+        if self._sync_base is None:
+            self._sync_base = sent
+        for topic, count in sent.items():
+            if topic in self._rx and self._rx[topic] < count - self._sync_base.get(topic, 0):
+                return  # not everything published before this sync has arrived yet
         if tick < self._last_sync_time - self.time_jump_reset_s:
             self.note_event(f"replay clock jumped back to {tick:.3f}: resetting estimators")
             self.resets += 1

@@ -25,11 +25,19 @@ longitudinal acceleration is the mean bias-compensated specific force minus g·s
 
 Publishes ``estimation/mass`` (std_msgs/Float64, kg) and ``estimation/mass_stamped``
 (geometry_msgs/Vector3Stamped: x = mass, y = variance [kg^2], z = converged 1/0).
+
+Persistence: with ``persist.path`` set (the launcher sets it: ``run`` under
+``$ROS_HOME/vehicle_estimation``, ``replay`` in a fresh temporary directory) the estimate and
+its covariance are saved atomically every ``persist.period_s`` of message time
+(:mod:`vehicle_estimation.nodes.persistence`), and a restarted node resumes from them instead
+of its prior. A file for another method or vehicle, or a damaged one, is refused, counted and
+reported in ``/diagnostics``, and the node starts from the prior.
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
@@ -45,6 +53,7 @@ from vehicle_estimation.nodes.base import (
     companion_value, run_node)
 from vehicle_estimation.nodes.conversions import (
     MalformedMessage, chassis_reading, forward_speed_entry, imu_arrays, powertrain_reading)
+from vehicle_estimation.nodes.persistence import StateFileError, load_state, save_state
 
 METHODS = ("rls", "ffrls")
 STALE_AFTER_S = 1.0
@@ -160,6 +169,15 @@ class MassNode(EstimatorNode):
         else:
             self.config = self.declare_config("ffrls", FFRLSMassConfig())
             self.core = FFRLSMassEstimator(self.vehicle, self.config)
+        self.persist_path = self.declare_str(
+            "persist.path", "",
+            "File the estimate and its covariance are saved to (atomically) and resumed from "
+            "after a restart; empty: off. The launcher sets it")
+        self.persist_period = self.declare_float(
+            "persist.period_s", 1.0, "Save period on the message clock [s]", 0.01, 3600.0)
+        self._last_persist = -math.inf
+        self.resumed_from: float | None = None
+        self._resume_persisted()
         self.bias = FusionImuBias()
         self.window = UpdateWindow()
         self.have_imu = False
@@ -271,6 +289,9 @@ class MassNode(EstimatorNode):
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
+        if self.persist_path and t - self._last_persist >= self.persist_period - STAMP_TOLERANCE_S:
+            self._last_persist = t
+            self._persist(t)
 
     def _window_accel(self, window: UpdateWindow, slope: float) -> float:
         """Longitudinal acceleration dv/dt over the window.
@@ -305,6 +326,37 @@ class MassNode(EstimatorNode):
             return self.can_speed[1]
         return None
 
+    # -------------------------------------------------------------- persistence
+    def _resume_persisted(self) -> None:
+        """Start from the last persisted estimate and covariance, if there is one."""
+        if not self.persist_path:
+            return
+        try:
+            loaded = load_state(Path(self.persist_path), f"mass/{self.method}")
+            if loaded is None:
+                self.note_event(f"no persisted mass state at {self.persist_path}: starting from the prior")
+                return
+            stamp, state, meta = loaded
+            if meta.get("vehicle") != self.vehicle.name:
+                raise StateFileError(f"state is for vehicle {meta.get('vehicle')!r}, not {self.vehicle.name!r}")
+            self.core.load_state_dict(state)
+        except (StateFileError, ValueError) as exc:
+            self.reject("persist:unusable_state_file")
+            self.note_event(f"ignoring persisted mass state ({exc}): starting from the prior")
+            self.core.reset()
+            return
+        self.resumed_from = stamp
+        self.note_event(f"resumed from the persisted mass {self.core.mass:.1f} kg "
+                        f"(variance {self.core.variance:.1f} kg^2, saved at stamp {stamp:.3f})")
+
+    def _persist(self, t: float) -> None:
+        try:
+            save_state(Path(self.persist_path), f"mass/{self.method}", t, self.core.state_dict(),
+                       vehicle=self.vehicle.name)
+        except (OSError, ValueError) as exc:
+            self.reject("persist:write_failed")
+            self.get_logger().error(f"cannot persist the mass state: {exc}", throttle_duration_sec=30.0)
+
     # -------------------------------------------------------------- outputs
     def publish_estimate(self, t: float) -> None:
         mass, variance, converged = float(self.core.mass), float(self.core.variance), bool(self.core.converged)
@@ -331,6 +383,8 @@ class MassNode(EstimatorNode):
         values = {"method": self.method, "mass [kg]": f"{self.core.mass:.1f}",
                   "converged": str(self.core.converged),
                   "samples used": str(self.core.samples_used)}
+        if self.resumed_from is not None:
+            values["resumed from persisted state saved at"] = f"{self.resumed_from:.3f}"
         for k, v in self.core.rejected.items():
             values[f"samples skipped: {k}"] = str(v)
         return values

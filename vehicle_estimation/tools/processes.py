@@ -76,10 +76,18 @@ class NodeGroup:
             self.nodes.append(NodeProcess(spec, argv, log_path=log))
 
     def start(self) -> None:
+        for node in self.nodes:
+            node.start(self._env())
+
+    def restart(self, node: NodeProcess) -> None:
+        """Start ``node`` again (after it exited) with the same command line."""
+        node.start(self._env())
+
+    @staticmethod
+    def _env() -> dict[str, str]:
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
-        for node in self.nodes:
-            node.start(env)
+        return env
 
     def check(self) -> list[NodeProcess]:
         """Nodes that have exited."""

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import importlib
 import math
+import shutil
 import sys
+import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -99,6 +101,7 @@ class ReplayStats:
     wall_s: float = 0.0
     bag_s: float = 0.0
     ticks: int = 0
+    respawns: int = 0                  # node processes restarted after a crash
 
     @property
     def lossless(self) -> bool:
@@ -121,6 +124,12 @@ class ReplayDriver(Node):
         self._rec_connections: dict[str, Any] = {}
         self.now_ns = 0
         self.dirty = False
+        # Count bookkeeping across a node respawn (see respawn_baseline): what each process
+        # will never see, and what dead processes had published.
+        self.rx_offsets: dict[str, Counter[str]] = {}
+        self.recorded_offsets: Counter[str] = Counter()
+        self.tx_dead: Counter[str] = Counter()
+        self.ack_seq = 0
         reliable = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
                               history=HistoryPolicy.KEEP_LAST, depth=10000)
         self.reliable = reliable
@@ -158,7 +167,9 @@ class ReplayDriver(Node):
         return self.raw_publishers[topic]
 
     def _on_ack(self, msg: DiagnosticStatus) -> None:
-        entry: dict[str, Any] = {"tick": msg.message, "rx": {}, "tx": {}, "matched": {}, "sources": {}}
+        self.ack_seq += 1
+        entry: dict[str, Any] = {"tick": msg.message, "rx": {}, "tx": {}, "matched": {}, "sources": {},
+                                 "seq": self.ack_seq}
         for kv in msg.values:
             for prefix, key in ((RX_PREFIX, "rx"), (TX_PREFIX, "tx"), (MATCHED_PREFIX, "matched"),
                                 (SOURCES_PREFIX, "sources")):
@@ -183,9 +194,35 @@ class ReplayDriver(Node):
 
     def totals(self) -> Counter[str]:
         total = Counter(self.tx)
+        total.update(self.tx_dead)
         for ack in self.acks.values():
             total.update(ack["tx"])
         return total
+
+    def forget_node(self, name: str) -> None:
+        """A node process died: keep what it published in the totals, drop its ack."""
+        ack = self.acks.pop(name, None)
+        if ack is not None:
+            self.tx_dead.update(ack["tx"])
+        self.rx_offsets.pop(name, None)
+
+    def counts_snapshot(self) -> tuple:
+        return (tuple(sorted((n, tuple(sorted(a["rx"].items())), tuple(sorted(a["tx"].items())))
+                             for n, a in self.acks.items())),
+                tuple(sorted(self.recorded.items())))
+
+    def rebaseline(self) -> None:
+        """After a respawn: what every subscriber has now is, from here on, complete.
+
+        Messages in flight to or from the dead process are lost with it; a new process
+        starts counting from zero. Offsets make every count match the totals again, so the
+        protocol carries on (lossless from here, not across the crash).
+        """
+        total = self.totals()
+        for name, ack in self.acks.items():
+            self.rx_offsets[name] = Counter({t: total.get(t, 0) - n for t, n in ack["rx"].items()})
+        for topic in self.record_subs:
+            self.recorded_offsets[topic] = total.get(topic, 0) - self.recorded[topic]
 
     def quiescent(self, tick_label: str) -> bool:
         if set(self.acks) < self.expected_nodes:
@@ -194,10 +231,17 @@ class ReplayDriver(Node):
             return False
         total = self.totals()
         for name in self.expected_nodes:
+            offsets = self.rx_offsets.get(name, Counter())
             for topic, n in self.acks[name]["rx"].items():
-                if n != total.get(topic, 0):
+                if n + offsets[topic] != total.get(topic, 0):
                     return False
-        return all(self.recorded[t] == total.get(t, 0) for t in self.record_subs if t != "/diagnostics")
+        return all(self.recorded[t] + self.recorded_offsets[t] == total.get(t, 0)
+                   for t in self.record_subs if t != "/diagnostics")
+
+    def acked_since(self, seq: int, tick_label: str) -> bool:
+        """Every node has acknowledged ``tick_label`` after ack number ``seq``."""
+        return set(self.acks) >= self.expected_nodes and all(
+            self.acks[n]["tick"] == tick_label and self.acks[n]["seq"] > seq for n in self.expected_nodes)
 
     def connected(self) -> bool:
         """Every publisher sees every subscriber of its topic, and vice versa."""
@@ -235,7 +279,12 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     typestore = get_typestore(Stores.ROS2_JAZZY)
     input_topics = {t for t in topics.INPUT_TOPICS}
     truth_topics = {t for t in topics.GROUND_TRUTH_TOPICS}
-    group = group_factory(release_delays(tick_s))
+    overrides = release_delays(tick_s)
+    # A fresh state file per replay: a respawned mass node resumes from it, while a new replay
+    # never inherits another run's estimate (that would break replay determinism).
+    state_dir = Path(tempfile.mkdtemp(prefix="vehicle_estimation_replay_"))
+    overrides.setdefault("mass", {})["persist.path"] = str(state_dir / "mass_state.json")
+    group = group_factory(overrides)
     writer = None
     if out is not None:
         if out.exists():
@@ -294,9 +343,12 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
         stats.wall_s = time.monotonic() - wall0
         group.stop()
         for topic in stats.read:
-            counts = [ack["rx"][topic] for ack in driver.acks.values() if topic in ack["rx"]]
+            counts = [ack["rx"][topic] + driver.rx_offsets.get(name, Counter())[topic]
+                      for name, ack in driver.acks.items() if topic in ack["rx"]]
             stats.processed[topic] = min(counts) if counts else 0
         stats.recorded = Counter(driver.recorded)
+        stats.respawns = sum(n.restarts for n in group.nodes)
+        shutil.rmtree(state_dir, ignore_errors=True)
         executor.shutdown()
         driver.destroy_node()
         rclpy.try_shutdown()
@@ -305,7 +357,12 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     return stats
 
 
-def _spin_until(driver, executor, group, predicate, resend, timeout: float, what: str) -> None:
+#: A node that keeps dying is not respawned forever.
+MAX_RESPAWNS = 3
+
+
+def _spin_until(driver, executor, group, predicate, resend, timeout: float, what: str,
+                tick_label: str | None = None) -> None:
     deadline = time.monotonic() + timeout
     last_send = time.monotonic()
     resend()
@@ -321,11 +378,57 @@ def _spin_until(driver, executor, group, predicate, resend, timeout: float, what
             dead = group.check()
             if dead:
                 names = ", ".join(f"{n.spec.name} (exit {n.process.returncode})" for n in dead)
-                raise ReplayError(f"node process exited during {what}: {names}")
+                # Exit 2 is a bad parameter: a respawn would only repeat it.
+                if tick_label is None or any(n.process.returncode == 2 or n.restarts >= MAX_RESPAWNS
+                                             for n in dead):
+                    raise ReplayError(f"node process exited during {what}: {names}")
+                _respawn(driver, executor, group, dead, tick_label, timeout)
+                deadline = time.monotonic() + timeout
             resend()
             last_send = now
         if now > deadline:
             raise ReplayError(f"timed out during {what}; acks: {driver.acks}")
+
+
+def _respawn(driver, executor, group, dead, tick_label: str, timeout: float) -> None:
+    """Restart crashed nodes mid-replay and carry on from where every process stands.
+
+    Like the live launcher, the replay respawns a node that died (a crash, ``kill -9``); the
+    mass node resumes from its persisted state (``persist.path``). The new process is waited
+    for with handshake syncs at the current tick until it is connected and every count has
+    settled; then the player re-baselines its bookkeeping (:meth:`ReplayDriver.rebaseline`).
+    What was in flight to the dead process is lost with it: the replay stays lossless from the
+    respawn on, and says how many messages the crash cost.
+    """
+    for node in dead:
+        name = driver._fq(group.namespace, node.spec.name)
+        print(f"\nreplay: {node.spec.name} exited with {node.process.returncode}; respawning "
+              f"(restart {node.restarts + 1})", file=sys.stderr)
+        driver.forget_node(name)
+        node.restarts += 1
+        group.restart(node)
+    deadline = time.monotonic() + timeout
+    previous = None
+    while True:
+        seq = driver.ack_seq
+        driver.send_sync(tick_label, handshake=True)
+        last_send = time.monotonic()
+        while not (driver.acked_since(seq, tick_label) and driver.connected()):
+            executor.spin_once(timeout_sec=0.05)
+            if time.monotonic() > deadline:
+                raise ReplayError(f"respawned node never came back; acks: {driver.acks}")
+            if time.monotonic() - last_send > RESEND_S:
+                seq = driver.ack_seq
+                driver.send_sync(tick_label, handshake=True)
+                last_send = time.monotonic()
+        snapshot = driver.counts_snapshot()
+        if snapshot == previous:
+            break
+        previous = snapshot
+        end = time.monotonic() + 0.2
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.02)
+    driver.rebaseline()
 
 
 def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None:
@@ -340,7 +443,7 @@ def _tick(driver, executor, group, tick_ns: int, timeout: float) -> None:
     driver.clock_pub.publish(_clock(tick_ns))
     label = str(tick_ns)
     _spin_until(driver, executor, group, lambda: driver.quiescent(label),
-                lambda: driver.send_sync(label), timeout, f"tick {label}")
+                lambda: driver.send_sync(label), timeout, f"tick {label}", tick_label=label)
 
 
 def _clock(ns: int) -> Clock:
@@ -372,3 +475,6 @@ def print_stats(stats: ReplayStats, out=sys.stdout) -> None:
     rate = stats.bag_s / stats.wall_s if stats.wall_s > 0 else math.nan
     print(f"replayed {stats.bag_s:.1f} s of bag in {stats.wall_s:.1f} s ({rate:.1f}x real time), "
           f"{stats.ticks} ticks; lossless: {stats.lossless}", file=out)
+    if stats.respawns:
+        print(f"{stats.respawns} node respawn(s) after a crash: what a dead process had queued "
+              "but not processed is lost with it (counted as processed above)", file=out)
