@@ -236,6 +236,45 @@ def test_state_node_estimates_speed_from_wheels_and_imu():
         h.close()
 
 
+@pytest.mark.parametrize("fallback", [True, False])
+def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
+    """No wheel speeds, an accelerometer biased by +0.3 m/s^2 at a steady 20 m/s: the CAN speed
+    holds vx; without it vx is dead-reckoned and drifts with the bias (~3 m/s in 10 s)."""
+    node = StateNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("speed_fallback", value=fallback), Parameter("initial_vx", value=20.0)])
+    h = Harness(node)
+    try:
+        topics_in = [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)]
+        if fallback:
+            topics_in.append((TwistWithCovarianceStamped, topics.SPEED))
+        for msg_type, topic in topics_in:
+            h.probe.publisher_for(msg_type, topic)
+        state = h.probe.watch(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
+        h.connect([topic for _, topic in topics_in])
+        stream = []
+        for i in range(2000):
+            ti = T0 + i * 0.005
+            if i % 2 == 0:
+                js = JointState()
+                sec_to_time(ti, js.header.stamp)
+                js.name = [topics.STEERING_JOINT]
+                js.position = [0.0]
+                stream.append((topics.JOINT_STATES, js))
+                if fallback:
+                    stream.append((topics.SPEED, speed_msg(ti, 20.0)))
+            stream.append((topics.IMU, imu_msg(ti, [0.3, 0.0, G], [0, 0, 0])))
+        h.publish_stream(stream)
+        assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 9)
+        vx = state[-1].twist.twist.linear.x
+        if fallback:
+            assert vx == pytest.approx(20.0, abs=0.3)
+            assert node.core.speed_updates > 500
+        else:
+            assert vx > 22.0        # the drift the fallback removes
+    finally:
+        h.close()
+
+
 def _mass_drive_stream(p, mass_true: float, slope_msgs: bool, low_accel: float = 0.2, v0: float = 5.0):
     """40 s of pulses of 1.2 m/s^2 and ``low_accel`` on a level road: IMU, CAN speed, wheels
     (brake torque when the pulse decelerates harder than the resistances), drive force, slope."""

@@ -239,6 +239,7 @@ class VehicleStateCKF:
         self.reinitialisations = 0
         self.last_event = ""
         self.updates = 0
+        self.speed_updates = 0
 
     def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
         """Factory hook: the filter on the model closures ``f``, ``h`` (called once by
@@ -313,6 +314,25 @@ class VehicleStateCKF:
             self.last_event = "re-initialised after numerical failure"
             return False
         self.updates += 1
+        return True
+
+    def update_speed(self, vx: float, variance: float) -> bool:
+        """Update with a direct measurement of the longitudinal speed ``vx`` [m/s].
+
+        Not in paper 004, whose model observes vx through the wheel speeds only: without them
+        (a car whose bus reports only the vehicle speed, a log without wheel speeds) vx would
+        be dead-reckoned from the accelerometer and drift with its bias. The measurement is
+        linear (``H = [1, 0, 0, 0, 0]``), so this is the exact Kalman update on the current
+        moments. Returns False (nothing changes) for a non-finite value or variance <= 0, or
+        before the filter has started.
+        """
+        vx, variance = float(vx), float(variance)
+        if not (self.initialised and math.isfinite(vx) and math.isfinite(variance) and variance > 0.0):
+            return False
+        P = self._ckf.P
+        self._ckf.correct(np.array([vx - self._ckf.x[0]]), np.array([[P[0, 0] + variance]]),
+                          P[:, :1].copy())
+        self.speed_updates += 1
         return True
 
     # -- outputs -------------------------------------------------------------------------

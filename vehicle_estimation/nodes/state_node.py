@@ -21,7 +21,8 @@ mass arrive the filter uses slope 0 and the vehicle's nominal mass, and says so 
 
 Wheel speeds missing: the inputs carry NaN wheel speeds and the core propagates vx with the
 measured longitudinal acceleration instead of the wheel-slip tyre forces (see
-``core.vehicle_model``). Steering missing: the sample is used with the last steering angle
+``core.vehicle_model``); ``vehicle/speed`` (CAN/OBD-II speed), when it is there, then updates vx
+directly (``speed_fallback``), so vx does not drift with the accelerometer bias. Steering missing: the sample is used with the last steering angle
 for at most ``stale_input_s``, then the filter runs on the IMU alone (δ = 0) and
 diagnostics report it.
 
@@ -84,6 +85,12 @@ class StateNode(EstimatorNode):
             "Process noise diagonal per 0.01 s step (Sec. 7.1's 0.1 I as a density)")
         self.r_diag = self.declare_float_array(
             "r_diag", list(np.diag(paper.R)), "Measurement noise diagonal of [ax, ay, r] (Sec. 7.1)")
+        self.speed_fallback = self.declare_bool(
+            "speed_fallback", True,
+            "Without wheel speeds, update vx with vehicle/speed (else vx is dead-reckoned from ax)")
+        self.speed_fallback_std = self.declare_float(
+            "speed_fallback_std", 0.3,
+            "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
         self.vb_config = (self.declare_config("vbackf", VBConfig())
                           if self.filter_name == "vbackf" else None)
         self.core = self._make_core()
@@ -107,6 +114,9 @@ class StateNode(EstimatorNode):
         self.pub_beta_stamped = self.publisher(Vector3Stamped, topics.SIDESLIP_STAMPED)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
+        self.speed: tuple[float, float, float] | None = None     # (stamp, vx, variance), unused yet
+        if self.speed_fallback:
+            self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         self.subscribe_imu_bias(self.bias)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
         self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
@@ -135,6 +145,28 @@ class StateNode(EstimatorNode):
             return
         self.chassis = reading
         self.chassis_t = t
+
+    def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
+        v, var = msg.twist.twist.linear.x, msg.twist.covariance[0]
+        if not math.isfinite(v) or abs(v) > 120.0:
+            self.reject("speed:invalid")
+            return
+        if not (math.isfinite(var) and var > 0.0):
+            var = self.speed_fallback_std ** 2
+        self.speed = (t, v, var)
+
+    def _update_speed_fallback(self, t: float, wheels: np.ndarray) -> None:
+        """vx from vehicle/speed when the wheel speeds are missing (each sample used once)."""
+        if np.all(np.isfinite(wheels[2:])) or self.speed is None:
+            self.set_missing("wheel speeds and vehicle/speed", False)
+            return
+        stamp, v, var = self.speed
+        if t - stamp > self.stale_input_s:
+            self.set_missing("wheel speeds and vehicle/speed", True)
+            return
+        self.set_missing("wheel speeds and vehicle/speed", False)
+        if self.core.update_speed(v, var):
+            self.speed = None
 
     def _upstream(self, history: UpstreamHistory, t: float, default: float, what: str) -> float:
         item = history.at(t)
@@ -184,6 +216,8 @@ class StateNode(EstimatorNode):
         self._last_step_t = t
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
+        if self.speed_fallback:
+            self._update_speed_fallback(t, wheels)
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_state(t)
@@ -226,6 +260,7 @@ class StateNode(EstimatorNode):
         self.slope.clear()
         self.mass.clear()
         self.chassis = None
+        self.speed = None
         self._first_imu_t = None
         self._last_pub = -math.inf
         self._z_sum[:] = 0.0
