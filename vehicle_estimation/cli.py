@@ -13,6 +13,8 @@ Subcommands::
     vehicle-estimation stanford [--out DIR]             real Stanford drive: state filters vs
                                                         the linear single-track KF baseline
     vehicle-estimation params [--write|--check README.md] the parameter reference of every node
+    vehicle-estimation bench [--sections cores,pipeline,live] [--minutes 30]
+                                                        speed and memory figures (a table)
 
 ``run`` and ``replay`` start every node as its own OS process. Ctrl-C or SIGTERM stops them
 all; the children also die with the launcher if it is killed (no orphans).
@@ -155,6 +157,11 @@ def cmd_experiment(args: argparse.Namespace) -> int:
                                      progress=not args.quiet)
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools import bench
+    return bench.main(args)
+
+
 def cmd_stanford(args: argparse.Namespace) -> int:
     from vehicle_estimation.tools import stanford
     from vehicle_estimation.tools.processes import NodeGroup
@@ -212,6 +219,10 @@ def build_parser() -> argparse.ArgumentParser:
     from vehicle_estimation.tools.stanford import add_arguments as stanford_arguments
     stanford_arguments(p)
     p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
+
+    p = sub.add_parser("bench", help="speed and memory figures: cores, pipeline replay, live (a table)")
+    from vehicle_estimation.tools.bench import add_arguments as bench_arguments
+    bench_arguments(p)
     return parser
 
 
@@ -227,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         return paramdoc.main(argv[1:])
     args = build_parser().parse_args(argv)
     commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
-                "experiment": cmd_experiment, "stanford": cmd_stanford}
+                "experiment": cmd_experiment, "stanford": cmd_stanford, "bench": cmd_bench}
     return commands[args.command](args)
 
 

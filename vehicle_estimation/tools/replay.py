@@ -27,7 +27,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -273,8 +273,13 @@ class ReplayDriver(Node):
 
 def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
            tick_s: float = DEFAULT_TICK_S, progress: bool = True, startup_timeout: float = 60.0,
-           stall_timeout: float = 60.0) -> ReplayStats:
-    """Play ``bag`` through nodes started by ``group_factory(overrides)``; record to ``out``."""
+           stall_timeout: float = 60.0,
+           tick_callback: Callable[[float], None] | None = None) -> ReplayStats:
+    """Play ``bag`` through nodes started by ``group_factory(overrides)``; record to ``out``.
+
+    ``tick_callback(bag_seconds_done)`` is called after every tick (the benchmark samples
+    memory with it).
+    """
     stats = ReplayStats()
     typestore = get_typestore(Stores.ROS2_JAZZY)
     input_topics = {t for t in topics.INPUT_TOPICS}
@@ -324,6 +329,8 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                     _tick(driver, executor, group, next_tick, stall_timeout)
                     stats.ticks += 1
                     next_tick += tick_ns
+                    if tick_callback is not None:
+                        tick_callback((next_tick - t_start) * 1e-9)
                     if progress:
                         _progress(next_tick - t_start, t_end - t_start, wall0)
                 topic = play_ids[conn.id]
