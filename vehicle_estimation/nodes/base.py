@@ -268,6 +268,7 @@ class EstimatorNode(Node):
         self._last_sync_time = -math.inf
         self._reack_timer = None
         self.resets = 0
+        self.max_queue = 0      # longest the stamp-ordered input queue has been (load check)
 
         self.input_depth = self.declare_int(
             "qos.input_depth", 200, "Keep-last depth of sensor-data subscriptions", 1, 100000)
@@ -453,6 +454,7 @@ class EstimatorNode(Node):
             ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec) \
                 if hasattr(msg, "header") else int(round(t * 1e9))
             heapq.heappush(self._queue, (ns, name, next(self._seq), handler, msg))
+            self.max_queue = max(self.max_queue, len(self._queue))
             self._release_available()
 
         sub = self.create_subscription(msg_type, topic, on_message, sensor_qos(self.input_depth))
@@ -609,6 +611,7 @@ class EstimatorNode(Node):
         values.update({f"rejected {k}": str(v) for k, v in self.rejected.items()})
         values["rejected total"] = str(sum(self.rejected.values()))
         values["resets"] = str(self.resets)
+        values["input queue: now / max"] = f"{len(self._queue)} / {self.max_queue}"
         if self.events:
             values["last event"] = self.events[-1]
         values.update(self.status_values())
