@@ -58,6 +58,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from vehicle_estimation import topics
 from vehicle_estimation.core.rotations import quat_to_rotmat
+from vehicle_estimation.nodes.cdr import raw_reader
 from vehicle_estimation.vehicle import VehicleParams
 
 SYNC_TOPIC = "replay/sync"
@@ -436,10 +437,14 @@ class EstimatorNode(Node):
         stamp_of = stamp_of or (lambda m: stamp_to_sec(m.header.stamp))
         holder: dict[str, str] = {}
 
+        read = raw_reader(msg_type)
+
         def on_message(msg: Any) -> None:
             name = holder["topic"]
             self._rx[name] += 1
             try:
+                if read is not None:
+                    msg = read(msg)
                 t = stamp_of(msg)
             except Exception:  # malformed message: no usable stamp
                 self.reject(f"{name}:bad_stamp")
@@ -457,7 +462,8 @@ class EstimatorNode(Node):
             self.max_queue = max(self.max_queue, len(self._queue))
             self._release_available()
 
-        sub = self.create_subscription(msg_type, topic, on_message, sensor_qos(self.input_depth))
+        sub = self.create_subscription(msg_type, topic, on_message, sensor_qos(self.input_depth),
+                                       raw=read is not None)
         holder["topic"] = sub.topic_name
         self._rx[sub.topic_name] += 0
         self._subscriptions_by_topic[sub.topic_name] = sub
@@ -471,13 +477,14 @@ class EstimatorNode(Node):
                            convert: Callable[[Any], tuple[float, Any] | None]) -> Any:
         """Subscribe an estimate of another node into a stamp-indexed history (reliable QoS)."""
         holder: dict[str, str] = {}
+        read = raw_reader(msg_type)
 
         def on_message(msg: Any) -> None:
             name = holder["topic"]
             self._rx[name] += 1
             self._schedule_reack()
             try:
-                item = convert(msg)
+                item = convert(msg if read is None else read(msg))
             except Exception:
                 item = None
             if item is None or not math.isfinite(item[0]):
@@ -485,7 +492,8 @@ class EstimatorNode(Node):
                 return
             history.add(*item)
 
-        sub = self.create_subscription(msg_type, topic, on_message, output_qos(self.output_depth))
+        sub = self.create_subscription(msg_type, topic, on_message, output_qos(self.output_depth),
+                                       raw=read is not None)
         holder["topic"] = sub.topic_name
         self._rx[sub.topic_name] += 0
         self._subscriptions_by_topic[sub.topic_name] = sub

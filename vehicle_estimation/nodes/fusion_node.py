@@ -129,7 +129,8 @@ class FusionNode(EstimatorNode):
     def publish_imu(self, t: float, raw: Imu, f: np.ndarray, w: np.ndarray) -> None:
         fc, wc = self.ekf.compensated_imu(f, w)
         out = Imu()
-        out.header.stamp = raw.header.stamp
+        # copied field by field: raw may be a message or a nodes.cdr view
+        out.header.stamp.sec, out.header.stamp.nanosec = raw.header.stamp.sec, raw.header.stamp.nanosec
         out.header.frame_id = self.base_frame
         q = self.ekf.quaternion
         out.orientation.x, out.orientation.y, out.orientation.z, out.orientation.w = (float(v) for v in q)
@@ -144,7 +145,8 @@ class FusionNode(EstimatorNode):
         """The IMU bias estimate in sensor_msgs/Imu form (see nodes.base.FusionImuBias)."""
         ekf = self.ekf
         out = Imu()
-        out.header.stamp = raw.header.stamp
+        # copied field by field: raw may be a message or a nodes.cdr view
+        out.header.stamp.sec, out.header.stamp.nanosec = raw.header.stamp.sec, raw.header.stamp.nanosec
         out.header.frame_id = self.base_frame
         # orientation: the IMU mounting, imu_link -> base_link (REP-145 IMUs report in
         # imu_link); consumers rotate bias-corrected samples with it.

@@ -208,9 +208,14 @@ class MassNode(EstimatorNode):
         self.pub_stamped = self.publisher(Vector3Stamped, topics.MASS_STAMPED)
         self.subscribe_primary(JointState, topics.POWERTRAIN, self.on_powertrain)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
-        self.subscribe_primary(Imu, topics.IMU, self.on_imu)
+        # The IMU (200 Hz or more) only feeds the acceleration for "imu", and "auto" without
+        # wheel speeds: a node that never reads it does not pay for receiving it.
+        uses_imu = self.accel_source in ("imu", "auto")
+        if uses_imu:
+            self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
-        self.subscribe_imu_bias(self.bias)
+        if uses_imu:
+            self.subscribe_imu_bias(self.bias)
         if self.speed_source == "fusion":
             self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
         if "vehicle_state" in (self.speed_source, self.accel_source):
