@@ -162,25 +162,73 @@ class TyreForces(NamedTuple):
     longitudinal_from_slip: bool
 
 
+class _WheelGeometry(NamedTuple):
+    """Per-wheel constants (fl, fr, rl, rr) of Eqs. 5-7, computed once per parameter set."""
+
+    x_from_r: np.ndarray      # v_x,wheel = vx + x_from_r * r  (-+ half tracks)
+    y_from_vy: np.ndarray     # v_y,wheel = y_from_vy * vy + y_from_r * r  (vyf, vyf, vyr, vyr)
+    y_from_r: np.ndarray
+    steered: np.ndarray       # 1 on the front wheels
+    alpha_sign: np.ndarray    # alpha = steered * delta + alpha_sign * atan(v_y / v_x)
+    c_alpha: np.ndarray       # cornering stiffness per wheel
+    load_static: np.ndarray   # F_z per wheel per (m g cos theta)
+    load_ax: np.ndarray       # F_z per wheel per (m a_x)
+    load_ay: np.ndarray       # F_z per wheel per (m a_y)
+
+
+_GEOMETRY: dict[int, tuple[VehicleParams, _WheelGeometry]] = {}
+
+
+def _geometry(params: VehicleParams) -> _WheelGeometry:
+    # Keyed on identity: hashing the frozen dataclass (all fields) would cost more than the
+    # lookup saves, and a parameter set lives as long as the filter that holds it.
+    entry = _GEOMETRY.get(id(params))
+    if entry is None or entry[0] is not params:
+        if len(_GEOMETRY) > 64:
+            _GEOMETRY.clear()
+        entry = (params, _make_geometry(params))
+        _GEOMETRY[id(params)] = entry
+    return entry[1]
+
+
+def _make_geometry(params: VehicleParams) -> _WheelGeometry:
+    hf, hr = 0.5 * params.track_front, 0.5 * params.track_rear
+    L, h = params.wheelbase, params.cg_height
+    cf, cr = params.cornering_stiffness_front, params.cornering_stiffness_rear
+    front, rear = params.lr / (2.0 * L), params.lf / (2.0 * L)
+    dfront, drear = h * params.lr / (L * params.track_front), h * params.lf / (L * params.track_rear)
+    return _WheelGeometry(
+        x_from_r=np.array([-hf, hf, -hr, hr]),
+        y_from_vy=np.array([1.0, 1.0, -1.0, -1.0]),
+        y_from_r=np.array([params.lf, params.lf, params.lr, params.lr]),
+        steered=np.array([1.0, 1.0, 0.0, 0.0]),
+        alpha_sign=np.array([-1.0, -1.0, 1.0, 1.0]),
+        c_alpha=np.array([cf, cf, cr, cr]),
+        load_static=np.array([front, front, rear, rear]),
+        load_ax=np.array([-h / (2.0 * L), -h / (2.0 * L), h / (2.0 * L), h / (2.0 * L)]),
+        load_ay=np.array([-dfront, dfront, -drear, drear]),
+    )
+
+
 def _wheel_velocities(vx, vy, r, delta, params: VehicleParams, min_speed: float):
-    """Eqs. 6-7: slip angles ``alpha_t`` and forward wheel speeds ``v_t``, shape (..., 4)."""
-    hf = 0.5 * params.track_front
-    hr = 0.5 * params.track_rear
-    vyf = vy + params.lf * r
-    vyr = params.lr * r - vy                      # (-vy + l_R r) of Eq. 6
-    vx_fl = vx - hf * r
-    vx_fr = vx + hf * r
-    vx_rl = vx - hr * r
-    vx_rr = vx + hr * r
-    cd = math.cos(delta)
-    sd = math.sin(delta)
-    alpha = np.stack((
-        delta - np.arctan(vyf / np.maximum(vx_fl, min_speed)),
-        delta - np.arctan(vyf / np.maximum(vx_fr, min_speed)),
-        np.arctan(vyr / np.maximum(vx_rl, min_speed)),
-        np.arctan(vyr / np.maximum(vx_rr, min_speed)),
-    ), axis=-1)
-    vt = np.stack((vx_fl * cd + vyf * sd, vx_fr * cd + vyf * sd, vx_rl, vx_rr), axis=-1)
+    """Eqs. 6-7: slip angles ``alpha_t`` and forward wheel speeds ``v_t``, shape (..., 4).
+
+    Per wheel, ``v_x = vx -+ (track/2) r`` and ``v_y = vy + l_F r`` (front) or
+    ``-vy + l_R r`` (rear, the sign of Eq. 6); ``alpha = delta - atan(v_y / v_x)`` at the
+    front and ``atan(v_y / v_x)`` at the rear; ``v_t = v_x cos(delta) + v_y sin(delta)`` at the
+    front and ``v_x`` at the rear. Evaluated as (..., 4) arrays in a handful of operations: the
+    filters call this for every cubature point at every step.
+    """
+    g = _geometry(params)
+    vx = np.asarray(vx, dtype=float)[..., None]
+    vy = np.asarray(vy, dtype=float)[..., None]
+    r = np.asarray(r, dtype=float)[..., None]
+    vxw = vx + g.x_from_r * r
+    vyw = g.y_from_vy * vy + g.y_from_r * r
+    alpha = g.steered * delta + g.alpha_sign * np.arctan(vyw / np.maximum(vxw, min_speed))
+    cd, sd = math.cos(delta), math.sin(delta)
+    front = g.steered
+    vt = vxw * (front * (cd - 1.0) + 1.0) + vyw * (front * sd)
     return alpha, vt
 
 
@@ -203,22 +251,17 @@ def free_rolling_wheel_speeds(x, steer_angle: float, params: VehicleParams,
 
 def _vertical_loads(ax_spec, ay, slope, mass, params: VehicleParams):
     """Eq. 5 (load transfer with the specific force ``ax_spec``), shape (..., 4), >= 0."""
-    L = params.wheelbase
-    h = params.cg_height
-    gc = params.gravity * math.cos(slope)
-    front = mass * params.lr * gc / (2.0 * L) - mass * h * ax_spec / (2.0 * L)
-    rear = mass * params.lf * gc / (2.0 * L) + mass * h * ax_spec / (2.0 * L)
-    dfront = mass * h * params.lr * ay / (L * params.track_front)
-    drear = mass * h * params.lf * ay / (L * params.track_rear)
-    fz = np.stack((front - dfront, front + dfront, rear - drear, rear + drear), axis=-1)
+    g = _geometry(params)
+    ax_spec = np.asarray(ax_spec, dtype=float)[..., None]
+    ay = np.asarray(ay, dtype=float)[..., None]
+    fz = mass * (g.load_static * (params.gravity * math.cos(slope)) + g.load_ax * ax_spec + g.load_ay * ay)
     return np.maximum(fz, 0.0)
 
 
 def _dugoff(slip, alpha, fz, params: VehicleParams):
     """Eq. 9, Dugoff tyre, arrays (..., 4). Returns (Fx, Fy) in the wheel frame."""
     c_sigma = params.longitudinal_stiffness
-    c_alpha = np.array((params.cornering_stiffness_front, params.cornering_stiffness_front,
-                        params.cornering_stiffness_rear, params.cornering_stiffness_rear))
+    c_alpha = _geometry(params).c_alpha
     mu_fz = params.road_friction * fz
     one_p = np.maximum(1.0 + slip, 1e-6)
     kx = c_sigma * slip
@@ -273,31 +316,45 @@ def tyre_forces(state, inputs: VehicleInputs, params: VehicleParams, *,
     return TyreForces(fx, fy, fz, slip, alpha, vt, from_slip)
 
 
+def _force_to_body(delta: float, params: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 3) matrices ``Mx``, ``My`` with ``[sum Fx_body, sum Fy_body, M_z] = Fx @ Mx + Fy @ My``
+    (the tyre forces in their wheel frames, front wheels steered by ``delta``): Eqs. 2-4 as
+    two matrix products."""
+    cd, sd = math.cos(delta), math.sin(delta)
+    lf, lr = params.lf, params.lr
+    hf, hr = 0.5 * params.track_front, 0.5 * params.track_rear
+    mx = np.array([[cd, sd, lf * sd - hf * cd],
+                   [cd, sd, lf * sd + hf * cd],
+                   [1.0, 0.0, -hr],
+                   [1.0, 0.0, hr]])
+    my = np.array([[-sd, cd, lf * cd + hf * sd],
+                   [-sd, cd, lf * cd - hf * sd],
+                   [0.0, 1.0, -lr],
+                   [0.0, 1.0, -lr]])
+    return mx, my
+
+
 def _body_accelerations(x, inputs: VehicleInputs, params: VehicleParams, min_speed: float):
     """Eqs. 2-4: model ``ax``, ``ay`` and ``r' = M_z / I_z``; plus whether ``ax`` is known.
 
     ``ax`` is kinematic (includes ``-g sin(theta)``). ``ax_known`` is False in the
     no-wheel-speed, no-torque fallback (``ax`` from the model is then meaningless).
+
+    Eq. 2: ``m ax = (Fx1 + Fx2) cos d + Fx3 + Fx4 - (Fy1 + Fy2) sin d - F_drag``;
+    Eq. 3: ``m ay = (Fx1 + Fx2) sin d + Fy3 + Fy4 + (Fy1 + Fy2) cos d``;
+    Eq. 4: ``M_z = l_F (Fx1 + Fx2) sin d - l_R (Fy3 + Fy4) + l_F (Fy1 + Fy2) cos d
+    - (B_F/2)(Fx1 - Fx2) cos d + (B_F/2)(Fy1 - Fy2) sin d - (B_R/2)(Fx3 - Fx4)``.
     """
     tf = tyre_forces(x, inputs, params, min_speed=min_speed)
-    fx, fy = tf.fx, tf.fy
-    delta = float(inputs.steer_angle)
-    cd, sd = math.cos(delta), math.sin(delta)
     mass = inputs.mass_or(params)
-    vx = x[..., 0]
-    fx1, fx2, fx3, fx4 = fx[..., 0], fx[..., 1], fx[..., 2], fx[..., 3]
-    fy1, fy2, fy3, fy4 = fy[..., 0], fy[..., 1], fy[..., 2], fy[..., 3]
-    fxf = fx1 + fx2
-    fyf = fy1 + fy2
+    mx, my = _force_to_body(float(inputs.steer_angle), params)
+    sums = tf.fx @ mx + tf.fy @ my
+    vx = np.asarray(x, dtype=float)[..., 0]
     drag = 0.5 * params.drag_coefficient * params.frontal_area * params.air_density * vx * np.abs(vx)
-    ax = (fxf * cd + fx3 + fx4 - fyf * sd - drag) / mass - params.gravity * math.sin(inputs.slope)  # Eq. 2
-    ay = (fxf * sd + fy3 + fy4 + fyf * cd) / mass                                                  # Eq. 3
-    mz = (params.lf * fxf * sd - params.lr * (fy3 + fy4) + params.lf * fyf * cd                    # Eq. 4
-          - 0.5 * params.track_front * (fx1 - fx2) * cd
-          + 0.5 * params.track_front * (fy1 - fy2) * sd
-          - 0.5 * params.track_rear * (fx3 - fx4))
+    ax = (sums[..., 0] - drag) / mass - params.gravity * math.sin(inputs.slope)   # Eq. 2
+    ay = sums[..., 1] / mass                                                        # Eq. 3
     ax_known = tf.longitudinal_from_slip or inputs.torques_valid
-    return ax, ay, mz / params.yaw_inertia, ax_known
+    return ax, ay, sums[..., 2] / params.yaw_inertia, ax_known                    # Eq. 4
 
 
 def state_derivative(x, inputs: VehicleInputs, params: VehicleParams, *,
