@@ -25,6 +25,11 @@ class RoadSpec:
       ``loop004``  closed ~2328 m hilly, curvy loop like paper 004 Fig. 6 (``length``)
       ``straight`` straight road, hills as ``random`` (``grade_max``) plus ``constant_grade``
       ``circle``   circle of ``radius`` (counter-clockwise, i.e. left turn), ``constant_grade``
+      ``dlc3888``  ISO 3888-2 obstacle-avoidance double lane change (paper 002 Sec. 4.2):
+                   ``dlc_lead_in`` m straight, then the 61 m track (sections 12, 13.5, 11,
+                   12.5, 12 m; lane 3 moved left so that its right edge is 1 m left of lane
+                   1's left edge; lane widths from ``dlc_vehicle_width``), then straight;
+                   repeated every ``dlc_repeat_m`` m if > 0; hills as ``random``
     """
 
     kind: str = "random"
@@ -39,6 +44,9 @@ class RoadSpec:
     loop_speed_max: float = 80.0 / 3.6
     loop_speed_min: float = 30.0 / 3.6
     loop_lat_acc: float = 1.0      # tuned: ~148 s per lap, ~57 km/h average
+    dlc_vehicle_width: float = 1.85  # ISO 3888-2 lane widths are set from the vehicle width [m]
+    dlc_lead_in: float = 100.0       # straight before the first double lane change [m]
+    dlc_repeat_m: float = 0.0        # > 0: a double lane change every this many metres
 
 
 @dataclasses.dataclass
@@ -107,6 +115,11 @@ def build_road(spec: RoadSpec, rng: np.random.Generator, needed_length: float,
     length = max(needed_length * 1.15 + 400.0, 600.0)
     n = int(math.ceil(length / DS)) + 1
     s = np.arange(n) * DS
+    if kind == "dlc3888":
+        z, dz = _hills(rng, s, spec.grade_max, spec.hill_wavelengths)
+        kappa = _dlc3888_curvature(spec, s)
+        x, y, psi = _integrate_path(kappa)
+        return Road(s, x, y, psi, kappa, z - z[0], dz, False)
     if kind == "circle":
         kappa = np.full(n, 1.0 / spec.radius)
         x, y, psi = _integrate_path(kappa)
@@ -192,3 +205,23 @@ def _loop004(spec: RoadSpec, rng: np.random.Generator) -> Road:
         v[-1] = min(v[-1], math.sqrt(v[0] ** 2 + 2 * 1.8 * DS))
     v = _moving_average(v, int(20 / DS), wrap=True)
     return Road(s, x, y, psi, kappa, z, dz, True, v_of_s=v)
+
+
+def _dlc3888_curvature(spec: RoadSpec, s: np.ndarray) -> np.ndarray:
+    """Curvature of the ISO 3888-2 centre line: quintic lateral transitions over sections 2
+    and 4 between the lane centres of sections 1/5 and 3 (lateral shift
+    ``(1.1 w + 0.25)/2 + 1 + (w + 1)/2`` for vehicle width ``w``, to the left)."""
+    w = spec.dlc_vehicle_width
+    shift = 0.5 * (1.1 * w + 0.25) + 1.0 + 0.5 * (w + 1.0)
+    pos = s - spec.dlc_lead_in
+    if spec.dlc_repeat_m > 0.0:
+        pos = np.where(pos >= 0.0, np.mod(pos, spec.dlc_repeat_m), pos)
+    y2 = np.zeros_like(s)   # d2y/dx2 of the lateral offset
+    y1 = np.zeros_like(s)
+    for start, length, sign in ((12.0, 13.5, 1.0), (36.5, 12.5, -1.0)):
+        u = (pos - start) / length
+        inside = (u >= 0.0) & (u <= 1.0)
+        uu = np.clip(u, 0.0, 1.0)
+        y1 += np.where(inside, sign * shift * 30.0 * uu ** 2 * (1.0 - uu) ** 2 / length, 0.0)
+        y2 += np.where(inside, sign * shift * 60.0 * uu * (1.0 - uu) * (1.0 - 2.0 * uu) / length ** 2, 0.0)
+    return y2 / (1.0 + y1 * y1) ** 1.5

@@ -170,6 +170,44 @@ def _cycle(cycle: str, duration: float, vehicle: str = "sedan_d_class", seed: in
     return make
 
 
+def paper002_sensors(segment_s: float, burst_rate: float) -> SensorConfig:
+    """Paper-002 measurement conditions: the isolated spikes and speckled bursts of Sec. 3.3 on
+    the IMU ay and yaw rate, and time-varying noise (the Eq.-34 variance schedule 9, 1, 4, 0.25
+    of paper 004 over ``segment_s`` segments around 0.1 m/s^2 and 0.004 rad/s); IMU at 100 Hz."""
+    return SensorConfig(imu_rate=100.0, accel_noise=0.1, gyro_noise=0.004, eq34_noise=True,
+                        eq34_segment_s=segment_s, outliers=True, outlier_isolated_rate=0.005,
+                        outlier_burst_rate=burst_rate)
+
+
+def _paper002_dlc() -> Scenario:
+    """ISO 3888-2 double lane changes at 80 km/h (one every 200 m, 30 s), flat road."""
+    return Scenario(
+        name="paper002_dlc",
+        vehicle=load_vehicle("sedan_d_class"),
+        duration_s=30.0,
+        speed_profile=SpeedProfile(kind="constant", speed_mps=80.0 / 3.6),
+        road=RoadSpec(kind="dlc3888", grade_max=0.0, dlc_lead_in=80.0, dlc_repeat_m=200.0),
+        seed=21,
+        initial_speed=80.0 / 3.6,
+        standstill_s=0.0,
+        sensors=paper002_sensors(segment_s=5.0, burst_rate=0.2),
+    )
+
+
+def _paper002_mixed() -> Scenario:
+    """300 s urban/country/highway drive on a curvy, hilly road with the paper-002 outliers."""
+    return Scenario(
+        name="paper002_mixed",
+        vehicle=load_vehicle("sedan_d_class"),
+        duration_s=300.0,
+        speed_profile=SpeedProfile(kind="route", route_mix=("urban", "country", "highway")),
+        road=RoadSpec(kind="random", grade_max=0.05, lat_acc=3.0),
+        seed=22,
+        standstill_s=5.0,
+        sensors=paper002_sensors(segment_s=40.0, burst_rate=0.05),
+    )
+
+
 SCENARIOS: dict[str, Callable[[], Scenario]] = {
     "default": default_scenario,
     "short": _short,
@@ -180,6 +218,8 @@ SCENARIOS: dict[str, Callable[[], Scenario]] = {
     "sedan_udds": _cycle("udds", 1385.0),
     "sedan_us06": _cycle("us06", 615.0),
     "audi_wltc3": _cycle("wltc3", 1815.0, "audi_a4", 7),
+    "paper002_dlc": _paper002_dlc,
+    "paper002_mixed": _paper002_mixed,
 }
 
 
