@@ -35,6 +35,7 @@ import dataclasses
 import math
 from typing import Any, Callable, Mapping, Sequence
 
+from vehicle_estimation.core.wind import WindEstimator, WindEstimatorConfig
 from vehicle_estimation.vehicle import VehicleParams, dataclass_from_mapping
 
 RPM_PER_RAD_S = 30.0 / math.pi
@@ -130,10 +131,38 @@ class MassRLSConfig:
     initial_residual_std: float = 500.0     # prior sigma of eps [N] for the variance estimate
     min_mass: float = 300.0                 # published mass is clipped to [min_mass, max_mass]
     max_mass: float = 60000.0
+    # --- ambient wind (not in the paper, its Sec. 8 open problem): with wind_compensation the
+    # drag term of Eq. (6) uses the wind of core/wind.py (EKF on [m, w_E, w_N] from the same
+    # samples) projected on the heading passed to step(heading=...); off: the paper's still air.
+    wind_compensation: bool = False        # estimate the wind online (core/wind.py) and compensate the drag; needs a heading
+    wind_force_std: float = 150.0           # WindEstimatorConfig.force_std [N]
+    wind_random_walk: float = 0.02          # WindEstimatorConfig.random_walk [m/s per sqrt(s)]
+    wind_mass_random_walk: float = 5.0      # WindEstimatorConfig.mass_random_walk [kg per sqrt(s)]
+    wind_initial_std: float = 6.0           # WindEstimatorConfig.initial_wind_std [m/s]
+    wind_min_speed: float = 8.0             # WindEstimatorConfig.min_speed [m/s]
+
+    def wind_config(self) -> WindEstimatorConfig:
+        """The wind estimator's config from the ``wind_*`` fields (validated, errors name them)."""
+        config = WindEstimatorConfig(force_std=self.wind_force_std, random_walk=self.wind_random_walk,
+                                     mass_random_walk=self.wind_mass_random_walk,
+                                     initial_wind_std=self.wind_initial_std, min_speed=self.wind_min_speed)
+        names = {"force_std": "wind_force_std", "random_walk": "wind_random_walk",
+                 "mass_random_walk": "wind_mass_random_walk", "initial_wind_std": "wind_initial_std",
+                 "min_speed": "wind_min_speed"}
+        try:
+            config.validate()
+        except ValueError as exc:
+            msg = str(exc)
+            field = msg.split(" ", 1)[0]
+            raise ValueError(msg.replace(field, names.get(field, field), 1)) from None
+        return config
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
         finite = validate_forgetting_fields(self, ("gear_ratio_tolerance",))
+        if not isinstance(self.wind_compensation, bool):
+            raise ValueError(f"wind_compensation must be a bool, got {self.wind_compensation!r}")
+        self.wind_config()
         for name in ("min_speed", "max_abs_slope", "max_brake_torque", "gear_shift_holdoff_s",
                      "min_phi"):
             if finite(name) < 0.0:
@@ -427,6 +456,11 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
     def _reset_method_state(self) -> None:
         self._last_gear: int | None = None
         self._last_shift_t = -math.inf
+        # The wind is re-estimated after every reset (it is not persisted: it changes between drives).
+        self.wind: WindEstimator | None = None
+        if self.config.wind_compensation:
+            self.wind = WindEstimator(self.params.air_density, self.params.drag_area, self.config.initial_mass,
+                                      self.config.wind_config())
 
     def _gear(self, gear: float, engine_speed: float, vx: float) -> int | None:
         n_gears = len(self.params.gear_ratios)
@@ -438,7 +472,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
     def step(self, t: float, vx: float, ax: float, slope: float, *,
              drive_force: float = math.nan, engine_torque: float = math.nan,
              engine_speed: float = math.nan, engine_load: float = math.nan,
-             gear: float = math.nan, brake_torque: float = 0.0) -> bool:
+             gear: float = math.nan, brake_torque: float = 0.0, heading: float = math.nan) -> bool:
         """Process one sample; return True when it updated the RLS.
 
         ``t`` [s], ``vx`` longitudinal speed [m/s], ``ax`` longitudinal acceleration dv/dt
@@ -458,6 +492,11 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
            when ``config.torque_regression`` is set.
 
         A non-finite ``brake_torque`` is treated as "not braking" (unknown).
+
+        ``heading`` [rad]: ENU yaw of the vehicle (the fusion odometry's), used only with
+        ``config.wind_compensation``: the sample then also updates the wind estimator
+        (:attr:`wind`) and the drag term uses the air speed v - w_a; a non-finite heading
+        leaves that sample uncompensated.
         """
         cfg = self.config
         p = self.params
@@ -518,8 +557,12 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             return self._reject("propulsion")
 
         g = p.gravity
-        drag = 0.5 * p.air_density * p.drag_area * vx * vx                     # F_a, Eq. (1)
         phi = ax + g * p.rolling_resistance * math.cos(slope) + g * math.sin(slope)  # Eq. (5)
+        if self.wind is not None:
+            self.wind.update(t, vx, heading, phi, force - inertia * ax)
+            drag = self.wind.drag(vx, heading)                                  # F_a with the wind
+        else:
+            drag = 0.5 * p.air_density * p.drag_area * vx * vx                 # F_a, Eq. (1)
         if abs(phi) < cfg.min_phi:
             return self._reject("phi")
         y = force - drag - inertia * ax                                          # Eq. (6)

@@ -1,0 +1,195 @@
+"""Tests of the paper-003 training phase: vehicle_estimation.core.calibration and tools/calibrate."""
+
+import argparse
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vehicle_estimation.core import calibration as cal
+from vehicle_estimation.core.mass_rls import EngineTorqueRegression, MassRLSConfig
+from vehicle_estimation.vehicle import load_vehicle_params, read_ros_params_file
+
+PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
+AUDI = load_vehicle_params(PARAMS_DIR / "audi_a4.yaml")
+AUDI_G = np.array([AUDI.effective_gearing(j) for j in range(1, 8)])
+
+
+def synthetic_ratios(rng, counts=(300, 800, 2000, 4000, 8000, 12000, 6000), spread=0.004, outliers=3000):
+    parts = [g * (1.0 + spread * rng.standard_normal(n)) for g, n in zip(AUDI_G, counts)]
+    # shifts, launch slip, coasting: ratios anywhere in the range
+    parts.append(np.exp(rng.uniform(np.log(4.0), np.log(60.0), outliers)))
+    return np.concatenate(parts)
+
+
+def test_gear_ratios_recovered_from_synthetic_ratios():
+    rng = np.random.default_rng(1)
+    est = cal.estimate_gear_ratios(synthetic_ratios(rng), n_gears=7, width=0.02)
+    assert len(est.gearings) == 7
+    rel = np.asarray(est.gearings) / AUDI_G - 1.0
+    assert np.max(np.abs(rel)) < 0.005, rel            # paper's target is 2 % (Table 4)
+    ratios = est.transmission_ratios(AUDI.final_drive, AUDI.wheel_radius)
+    assert ratios == pytest.approx(AUDI.gear_ratios, rel=0.005)
+
+
+def test_gear_ratios_without_gear_count_finds_the_peaks():
+    rng = np.random.default_rng(2)
+    est = cal.estimate_gear_ratios(synthetic_ratios(rng, outliers=500), width=0.02, min_prominence=0.01)
+    assert len(est.gearings) == 7
+    assert np.asarray(est.gearings) == pytest.approx(AUDI_G, rel=0.005)
+
+
+def test_too_few_gear_peaks_is_an_error():
+    rng = np.random.default_rng(3)
+    ratios = AUDI_G[4] * (1.0 + 0.003 * rng.standard_normal(2000))
+    with pytest.raises(ValueError, match="gear peaks"):
+        cal.estimate_gear_ratios(ratios, n_gears=7)
+
+
+def test_histogram_is_eq50_with_widening_intervals():
+    rng = np.random.default_rng(4)
+    r = rng.uniform(5.0, 50.0, 500)
+    grid, counts = cal.gear_ratio_histogram(r, 5.0, 50.0, width=0.02, resolution=0.01)
+    brute = np.array([np.count_nonzero((r >= 0.98 * g) & (r <= 1.02 * g)) for g in grid])
+    assert np.array_equal(counts, brute)
+    assert np.allclose(np.diff(np.log(grid)), math.log(1.01))
+
+
+def test_speed_ratios_skip_idle_and_standstill():
+    w = np.array([AUDI.engine_idle_speed, 200.0, 300.0, 300.0])
+    v = np.array([10.0, 10.0, 0.5, 20.0])
+    assert cal.speed_ratios(w, v, idle_speed=AUDI.engine_idle_speed) == pytest.approx([20.0, 15.0])
+
+
+def _synthetic_drive(rng, n=3000, truth=(0.60, 0.010, 0.24, 5.0), w=(-45.0, 280.0, 0.02, -3.0e-6), noise=1.0):
+    mass = 1580.0
+    gear = rng.integers(1, 8, n)
+    G = AUDI_G[gear - 1]
+    v = rng.uniform(3.0, 40.0, n)
+    a = rng.uniform(0.0, 2.0, n) / np.sqrt(gear)
+    slope = rng.uniform(-0.06, 0.06, n)
+    b0, B = cal.dynamics_torque_basis(mass, v, a, slope, G, wheel_radius=AUDI.wheel_radius,
+                                      air_density=AUDI.air_density, gravity=AUDI.gravity)
+    torque = b0 + B @ np.asarray(truth)
+    rpm = rng.uniform(1000.0, 5500.0, n)
+    load = (torque - w[0] - w[2] * rpm - w[3] * rpm ** 2) / w[1] + noise / w[1] * rng.standard_normal(n)
+    return mass, v, a, slope, G, load, rpm * math.pi / 30.0
+
+
+def test_grid_search_recovers_known_drag_and_rolling_resistance():
+    rng = np.random.default_rng(5)
+    mass, v, a, slope, G, load, we = _synthetic_drive(rng)
+    fit = cal.fit_torque_model(mass, v, a, slope, G, load, we, wheel_radius=AUDI.wheel_radius,
+                               air_density=AUDI.air_density, gravity=AUDI.gravity)
+    assert fit.drag_area == pytest.approx(0.60)
+    assert fit.rolling_resistance == pytest.approx(0.010)
+    assert fit.engine_inertia == pytest.approx(0.24)
+    assert fit.wheel_inertia == pytest.approx(5.0)
+    assert fit.coefficients == pytest.approx((-45.0, 280.0, 0.02, -3.0e-6), rel=0.05, abs=0.5)
+    assert fit.r2 > 0.99
+    assert fit.on_grid_edge == ()
+    # The fitted map is what the mass core evaluates (Eq. 49, N_e in rpm).
+    reg = EngineTorqueRegression(fit.coefficients, "rpm")
+    w0, w1, w2, w3 = fit.coefficients
+    assert reg.torque(0.5, 3000 * math.pi / 30) == pytest.approx(w0 + 0.5 * w1 + 3000 * w2 + 3000 ** 2 * w3)
+
+
+def test_closed_form_grid_equals_explicit_regression_per_grid_point():
+    rng = np.random.default_rng(6)
+    mass, v, a, slope, G, load, we = _synthetic_drive(rng, n=400, noise=15.0)
+    grid = {"drag_area": (0.4, 0.8, 0.1), "rolling_resistance": (0.006, 0.014, 0.004),
+            "engine_inertia": (0.1, 0.3, 0.1), "wheel_inertia": (3.0, 7.0, 2.0)}
+    fit = cal.fit_torque_model(mass, v, a, slope, G, load, we, wheel_radius=AUDI.wheel_radius,
+                               air_density=AUDI.air_density, gravity=AUDI.gravity, grid=grid)
+    b0, B = cal.dynamics_torque_basis(mass, v, a, slope, G, wheel_radius=AUDI.wheel_radius,
+                                      air_density=AUDI.air_density, gravity=AUDI.gravity)
+    X = cal.torque_features(load, we, 2)
+    best, best_ss = None, math.inf
+    for ca in np.arange(0.4, 0.8001, 0.1):
+        for cr in np.arange(0.006, 0.0141, 0.004):
+            for ie in np.arange(0.1, 0.3001, 0.1):
+                for iw in np.arange(3.0, 7.001, 2.0):
+                    target = b0 + B @ np.array([ca, cr, ie, iw])
+                    w, *_ = np.linalg.lstsq(X / X.max(axis=0), target, rcond=None)
+                    ss = float(np.sum((target - (X / X.max(axis=0)) @ w) ** 2))
+                    if ss < best_ss:
+                        best, best_ss = (ca, cr, ie, iw), ss
+    assert (fit.drag_area, fit.rolling_resistance, fit.engine_inertia, fit.wheel_inertia) == pytest.approx(best)
+    assert fit.rmse == pytest.approx(math.sqrt(best_ss / v.size), rel=1e-6)
+
+
+def test_grid_search_needs_enough_samples():
+    X = np.ones((5, 4))
+    with pytest.raises(ValueError, match="valid samples"):
+        cal.grid_search(X, np.ones(5), np.ones((5, 4)))
+
+
+def test_window_helpers_match_the_mass_node():
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 10.0, 0.01)
+    v = 3.0 + 0.7 * t + 0.01 * rng.standard_normal(t.size)
+    ids = cal.window_ids(t, 0.25)
+    n = int(ids.max()) + 1
+    slope = cal.window_slope(ids, t, v, n)
+    mean = cal.window_mean(ids, v, n)
+    for k in (0, 7, 30):
+        sel = ids == k
+        assert slope[k] == pytest.approx(np.polyfit(t[sel] - t[sel][0], v[sel], 1)[0])
+        assert mean[k] == pytest.approx(v[sel].mean())
+    assert np.all(np.isnan(cal.window_mean(ids, np.full(t.size, np.nan), n)))
+
+
+def test_debias_grade_recovers_a_constant_offset():
+    rng = np.random.default_rng(8)
+    ds = rng.uniform(0.0, 8.0, 5000)
+    true_sin = 0.03 * np.sin(np.cumsum(ds) / 700.0)
+    height = float(np.sum(true_sin * ds))
+    corrected, offset = cal.debias_grade(true_sin + 0.009, ds, height)
+    assert offset == pytest.approx(0.009, abs=1e-9)
+    assert corrected == pytest.approx(true_sin, abs=1e-9)
+
+
+def test_calibrate_cli_on_a_simulated_bag(tmp_path):
+    from vehicle_estimation.sim.bag import write_bag
+    from vehicle_estimation.sim.profiles import SpeedProfile
+    from vehicle_estimation.sim.road import RoadSpec
+    from vehicle_estimation.sim.scenario import Scenario, SensorConfig
+    from vehicle_estimation.sim.simulate import simulate
+    from vehicle_estimation.tools import calibrate
+
+    pts = ((0, 0), (14, 30), (20, 30), (30, 12), (42, 38), (70, 38), (80, 25), (95, 25), (102, 8),
+           (110, 8), (118, 20), (130, 14), (140, 0), (144, 0))
+    scn = Scenario(name="cal", vehicle=AUDI, duration_s=150.0, seed=9,
+                   speed_profile=SpeedProfile(kind="points", points=pts),
+                   road=RoadSpec(kind="random", grade_max=0.04),
+                   sensors=dataclasses.replace(SensorConfig(), imu_rate=50.0, speed_rate=20.0,
+                                               joint_states_rate=50.0, powertrain_rate=50.0, gnss_rate=1.0))
+    result = simulate(scn)
+    gears = sorted(set(result.truth["gear"][result.truth["vx"] > 3.0].tolist()))
+    bag = write_bag(result, tmp_path / "drive")
+    out = tmp_path / "calibrated.yaml"
+    parser = argparse.ArgumentParser()
+    calibrate.add_arguments(parser)
+    args = parser.parse_args([str(bag), "--mass", str(AUDI.mass), "--out", str(out), "--gears", str(len(gears)),
+                              "--vehicle", str(PARAMS_DIR / "audi_a4.yaml")])
+    assert calibrate.main(args) == 0
+    vehicle = load_vehicle_params(out)
+    merged = read_ros_params_file(out)
+    config = MassRLSConfig.from_mapping(merged["mass"])
+    assert len(config.torque_regression) == 4
+    assert config.torque_regression_speed_unit == "rpm"
+    for j, gear in enumerate(gears):
+        # only i_t i_d / r is observable; the file keeps the base i_d and r
+        assert vehicle.effective_gearing(j + 1) == pytest.approx(AUDI.effective_gearing(gear), rel=0.02)
+    assert vehicle.mass == AUDI.mass
+
+
+def test_calibrate_cli_reports_a_missing_bag(tmp_path, capsys):
+    from vehicle_estimation.tools import calibrate
+    parser = argparse.ArgumentParser()
+    calibrate.add_arguments(parser)
+    args = parser.parse_args([str(tmp_path / "nope"), "--mass", "1500", "--out", str(tmp_path / "x.yaml")])
+    assert calibrate.main(args) == 2
+    assert "no such bag" in capsys.readouterr().err
