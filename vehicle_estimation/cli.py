@@ -15,6 +15,15 @@ Subcommands::
     vehicle-estimation params [--write|--check README.md] the parameter reference of every node
     vehicle-estimation bench [--sections cores,pipeline,live] [--minutes 30]
                                                         speed and memory figures (a table)
+    vehicle-estimation paper000 [--out DIR]             paper 000 Tables 2-4, 6: TA-AEKF vs EKF,
+                                                        MLP, LSTM, transformer; tau; OOD masses
+    vehicle-estimation paper002 [--out DIR]             paper 002 Table 2: EKF, UKF, AO-UKF,
+                                                        AO-UKF + GA-BPNN, VB-ACKF with outliers
+    vehicle-estimation calibrate BAG --mass KG --out calibrated.yaml
+                                                        paper 003 training phase from one drive
+    vehicle-estimation campaign [--out DIR]             calibration + paper 003's 18 drives + wind
+    vehicle-estimation truck-data | train-mass-transformer | train-gabpnn
+                                                        data and training of the shipped models
 
 ``run`` and ``replay`` start every node as its own OS process. Ctrl-C or SIGTERM stops them
 all; the children also die with the launcher if it is killed (no orphans).
@@ -173,6 +182,18 @@ def cmd_stanford(args: argparse.Namespace) -> int:
     return stanford.main(args, node_group)
 
 
+#: Subcommands that are one tool module each (``add_arguments(parser)`` and ``main(args)``).
+TOOL_COMMANDS = {
+    "paper000": ("paper000", "paper 000: TA-AEKF vs EKF, MLP, LSTM and transformer (Tables 2-4, 6)"),
+    "paper002": ("paper002", "paper 002: EKF, UKF, anti-outlier UKF (+ GA-BPNN) on outliers (Table 2)"),
+    "calibrate": ("calibrate", "learn gear ratios, torque map, CdA, Cr, inertias from one drive of known mass"),
+    "campaign": ("campaign", "calibration plus paper 003's drive campaign (loads, tyres, windows, wind)"),
+    "truck-data": ("truck_data", "simulate the paper-000 truck drives the mass networks train on"),
+    "train-mass-transformer": ("train_mass_transformer", "train the paper-000 mass networks (safetensors)"),
+    "train-gabpnn": ("train_gabpnn", "train the paper-002 GA-BPNN correction (npz, no pickle)"),
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vehicle-estimation", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -223,6 +244,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="speed and memory figures: cores, pipeline replay, live (a table)")
     from vehicle_estimation.tools.bench import add_arguments as bench_arguments
     bench_arguments(p)
+
+    import importlib
+    for command, (module, help_text) in TOOL_COMMANDS.items():
+        p = sub.add_parser(command, help=help_text)
+        importlib.import_module(f"vehicle_estimation.tools.{module}").add_arguments(p)
     return parser
 
 
@@ -239,6 +265,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
                 "experiment": cmd_experiment, "stanford": cmd_stanford, "bench": cmd_bench}
+    if args.command in TOOL_COMMANDS:
+        import importlib
+        return importlib.import_module(f"vehicle_estimation.tools.{TOOL_COMMANDS[args.command][0]}").main(args)
     return commands[args.command](args)
 
 

@@ -203,7 +203,7 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
              drive_force: float = math.nan, drive_torque: float = math.nan,
              engine_torque: float = math.nan, engine_speed: float = math.nan,
              engine_load: float = math.nan, gear: float = math.nan,
-             brake_torque: float = 0.0) -> bool:
+             brake_torque: float = 0.0, heading: float = math.nan) -> bool:
         """Process one sample; return True when it updated the estimate (Eq. 30).
 
         ``t`` [s], ``vx`` longitudinal speed [m/s], ``ax`` the longitudinal acceleration
@@ -220,8 +220,9 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
         3. ``engine_torque`` [N m] × eta_t × i_g i_0 / R_t, the gear from ``gear`` (1-based)
            or predicted from ``engine_speed`` [rad/s] and ``vx`` (paper 003 Eqs. 10-11).
 
-        ``engine_load`` is accepted for call compatibility with
-        :meth:`LongitudinalMassEstimator.step` and not used (paper 004 has no torque map).
+        ``engine_load`` and ``heading`` are accepted for call compatibility with
+        :meth:`LongitudinalMassEstimator.step` and not used (paper 004 has no torque map and
+        no wind compensation).
         """
         cfg = self.config
         p = self.params

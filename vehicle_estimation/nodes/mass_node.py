@@ -11,6 +11,17 @@ Methods (parameter ``method``):
 * ``ffrls`` (default): paper 004 Sec. 6 (Eqs. 28-31), parameters ``ffrls.*``: the braking torque is in
   the regression, so braking and down-hill samples count too, and the threshold judgment of
   Eq. 31 passes only well-excited samples. Drive force from ``drive`` or engine torque.
+* ``ta_aekf``: paper 000 (Algorithm 1, Eqs. 16-36), parameters ``ta_aekf.*``: an adaptive EKF
+  on [v_x, 1/m] whose second observation is the mass from the shipped transformer
+  (``vehicle_estimation/models/mass_transformer``, trained on the heavy truck of paper 000;
+  ``ta_aekf.model_path`` picks another), weighted by the confidence level tau of Eq. 19.
+  It steps at every powertrain sample (100 Hz, the paper's 0.01 s) and runs the network once
+  every ``ta_aekf.inference_period_steps`` samples (10: 10 Hz, ~1 % of a core; see
+  :class:`~vehicle_estimation.core.ta_aekf.TaAekfConfig`). A model file that fails its
+  checks (SHA-256, names, shapes, finiteness) stops the node naming ``ta_aekf.model_path``.
+
+Heading for the wind compensation of ``rls`` (``mass.wind_compensation``): the yaw of the
+fusion odometry's orientation.
 
 With no propulsion source the node keeps publishing its prior with a large variance and says
 so in ``/diagnostics``.
@@ -48,15 +59,20 @@ from std_msgs.msg import Float64
 from vehicle_estimation import topics
 from vehicle_estimation.core.mass_ffrls import FFRLSMassConfig, FFRLSMassEstimator
 from vehicle_estimation.core.mass_rls import LongitudinalMassEstimator, MassRLSConfig
+from vehicle_estimation.core.ta_aekf import TaAekfConfig, TaAekfMassEstimator
 from vehicle_estimation.nodes.base import (
-    STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, UpstreamHistory, companion,
+    STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion,
     companion_value, run_node)
 from vehicle_estimation.nodes.conversions import (
-    MalformedMessage, chassis_reading, forward_speed_entry, imu_arrays, powertrain_reading)
+    MAX_SPEED, MalformedMessage, chassis_reading, forward_speed_entry, imu_arrays, imu_plausible, odometry_entry,
+    powertrain_reading)
 from vehicle_estimation.nodes.persistence import StateFileError, load_state, save_state
 
-METHODS = ("rls", "ffrls")
+METHODS = ("rls", "ffrls", "ta_aekf")
 STALE_AFTER_S = 1.0
+#: A powertrain reading above this multiple of what the vehicle's engine can deliver (maximum
+#: torque, through the lowest gear) is absurd, not a strong engine.
+POWERTRAIN_MARGIN = 3.0
 
 
 class UpdateWindow:
@@ -163,9 +179,22 @@ class MassNode(EstimatorNode):
         self.update_rate = self.declare_float(
             "update_rate_hz", 4.0,
             "RLS update rate; inputs are averaged over each period (paper 003: 4 Hz CAN)", 0.1, 1000.0)
+        self.core: LongitudinalMassEstimator | FFRLSMassEstimator | TaAekfMassEstimator
         if self.method == "rls":
             self.config = self.declare_config("mass", MassRLSConfig())
             self.core = LongitudinalMassEstimator(self.vehicle, self.config)
+        elif self.method == "ta_aekf":
+            self.config = self.declare_config("ta_aekf", TaAekfConfig())
+            if self.config.use_network:
+                import torch
+                # One window per inference: torch's intra-op threads only contend with the other
+                # nodes for the cores (2 threads on a busy 2-core machine: 120 ms per inference,
+                # 1 thread: 0.6 ms).
+                torch.set_num_threads(1)
+            try:
+                self.core = TaAekfMassEstimator(self.vehicle, self.config)
+            except ValueError as exc:   # the model files failed a check: name the parameter
+                raise ParameterError(f"parameter 'ta_aekf.model_path': {exc}") from exc
         else:
             self.config = self.declare_config("ffrls", FFRLSMassConfig())
             self.core = FFRLSMassEstimator(self.vehicle, self.config)
@@ -186,20 +215,26 @@ class MassNode(EstimatorNode):
             ("auto", "wheel_speed", "imu", "vehicle_state"))
         self.speed_source = self.declare_str(
             "speed_source", "fusion",
-            "Speed for the regression: fusion odometry or the vehicle-state node, each falling "
-            "back on the CAN speed", ("fusion", "vehicle_state"))
+            "Speed for the regression: fusion odometry, the vehicle-state node or the undriven "
+            "wheels' mean speed x radius, each falling back on the CAN speed",
+            ("fusion", "vehicle_state", "wheel_speed"))
         self.require_slope = self.declare_bool(
             "require_slope", True,
             "Update only with a slope estimate from the slope node (else assume a level road)")
         self.max_slope_var = math.radians(self.declare_float(
             "max_slope_std_deg", 0.5,
             "Update only while the slope estimate is converged with at most this std [deg]", 0.01, 90.0)) ** 2
+        p = self.vehicle
+        self.max_engine_torque = POWERTRAIN_MARGIN * p.engine_max_torque
+        self.max_drive_force = (POWERTRAIN_MARGIN * p.engine_max_torque * max(p.gear_ratios, default=1.0)
+                                * p.final_drive / p.wheel_radius)
         axle = {"front": [2, 3], "rear": [0, 1], "all": [0, 1, 2, 3]}[self.vehicle.driven_axle]
         self.undriven_wheels = np.array(axle)
         self.slope = UpstreamHistory()
         self.odom_speed = UpstreamHistory()
         self.state_speed = UpstreamHistory()
         self.can_speed: tuple[float, float] | None = None
+        self.wheel_speed: tuple[float, float] | None = None
         self.brake_torque = 0.0
         self.brake_t = -math.inf
         self._last_pub = -math.inf
@@ -216,8 +251,9 @@ class MassNode(EstimatorNode):
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         if uses_imu:
             self.subscribe_imu_bias(self.bias)
-        if self.speed_source == "fusion":
-            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
+        self.needs_heading = self.method == "rls" and self.config.wind_compensation
+        if self.speed_source == "fusion" or self.needs_heading:
+            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, odometry_entry)
         if "vehicle_state" in (self.speed_source, self.accel_source):
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
                                     forward_speed_entry)
@@ -226,7 +262,7 @@ class MassNode(EstimatorNode):
     # -------------------------------------------------------------- inputs
     def on_imu(self, t: float, msg: Imu) -> None:
         f, w = imu_arrays(msg)
-        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))) or abs(f[0]) > 160.0:
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))) or not imu_plausible(f, w):
             self.reject("imu:invalid")
             return
         f, _ = self.bias.correct(t, f, w)
@@ -235,7 +271,7 @@ class MassNode(EstimatorNode):
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
         v = msg.twist.twist.linear.x
-        if math.isfinite(v) and abs(v) < 120.0:
+        if math.isfinite(v) and abs(v) <= MAX_SPEED:
             self.can_speed = (t, v)
         else:
             self.reject("speed:invalid")
@@ -251,13 +287,18 @@ class MassNode(EstimatorNode):
             self.brake_torque, self.brake_t = max(total, 0.0), t
         undriven = reading.wheel_speeds[self.undriven_wheels]
         if np.all(np.isfinite(undriven)):
-            self.window.add_wheel_speed(t, float(np.mean(undriven)) * self.vehicle.wheel_radius)
+            v = float(np.mean(undriven)) * self.vehicle.wheel_radius
+            self.window.add_wheel_speed(t, v)
+            self.wheel_speed = (t, v)
 
     def on_powertrain(self, t: float, msg: JointState) -> None:
         try:
             pt = powertrain_reading(msg)
         except MalformedMessage:
             self.reject("powertrain:malformed")
+            return
+        if abs(pt.drive_force) > self.max_drive_force or abs(pt.engine_torque) > self.max_engine_torque:
+            self.reject("powertrain:implausible")     # NaN (not reported) passes: comparisons are False
             return
         speed = self._speed_at(t)
         slope_item = self.slope.at(t)
@@ -268,6 +309,16 @@ class MassNode(EstimatorNode):
         if not (slope_ok and slope_item.converged and slope_item.variance <= self.max_slope_var):
             self.window.slope_trusted = False
         self.set_missing("vehicle speed", speed is None)
+        if self.method == "ta_aekf":
+            # Algorithm 1 steps at every sample (0.01 s); the core averages its network
+            # features over blocks itself, and gaps restart its speed state.
+            if speed is not None and (slope_ok or not self.require_slope):
+                brake = self.brake_torque if t - self.brake_t <= STALE_AFTER_S else 0.0
+                self.core.step(t, speed, math.nan, slope_item.value if slope_ok else 0.0,
+                               drive_force=pt.drive_force, engine_torque=pt.engine_torque,
+                               engine_speed=pt.engine_speed, gear=pt.gear, brake_torque=brake)
+            self._publish_and_persist(t)
+            return
         window = self.window
         if self.accel_source == "vehicle_state":
             item = self.state_speed.at(t)
@@ -284,13 +335,23 @@ class MassNode(EstimatorNode):
             # No update on a guessed slope: a 1 % grade error is a 10 % error in phi at 1 m/s^2.
             ready = math.isfinite(ax) and (window.slope_trusted or not self.require_slope)
             if ready:
+                extra = {}
+                if self.needs_heading:
+                    item = self.odom_speed.at(t)
+                    fresh = item is not None and t - item[0] <= STALE_AFTER_S
+                    self.set_missing("heading (estimation/odometry) for the wind", not fresh)
+                    extra["heading"] = item[2] if fresh else math.nan
                 self.core.step(t, window.mean("vx"), ax, slope,
                                drive_force=window.mean("drive_force"),
                                engine_torque=window.mean("engine_torque"),
                                engine_speed=window.mean("engine_speed"),
                                engine_load=window.mean("engine_load"), gear=window.gear,
-                               brake_torque=window.brake if self.method == "rls" else window.brake_mean)
+                               brake_torque=window.brake if self.method == "rls" else window.brake_mean,
+                               **extra)
             window.clear()
+        self._publish_and_persist(t)
+
+    def _publish_and_persist(self, t: float) -> None:
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
@@ -324,7 +385,10 @@ class MassNode(EstimatorNode):
         return window.accel - self.vehicle.gravity * math.sin(slope)
 
     def _speed_at(self, t: float) -> float | None:
-        item = (self.odom_speed if self.speed_source == "fusion" else self.state_speed).at(t)
+        if self.speed_source == "wheel_speed":
+            item = self.wheel_speed
+        else:
+            item = (self.odom_speed if self.speed_source == "fusion" else self.state_speed).at(t)
         if item is not None and t - item[0] <= STALE_AFTER_S:
             return item[1]
         if self.can_speed is not None and t - self.can_speed[0] <= STALE_AFTER_S:
@@ -382,6 +446,7 @@ class MassNode(EstimatorNode):
         self.odom_speed.clear()
         self.state_speed.clear()
         self.can_speed = None
+        self.wheel_speed = None
         self._last_pub = -math.inf
 
     def status_values(self) -> dict[str, str]:
@@ -392,6 +457,14 @@ class MassNode(EstimatorNode):
             values["resumed from persisted state saved at"] = f"{self.resumed_from:.3f}"
         for k, v in self.core.rejected.items():
             values[f"samples skipped: {k}"] = str(v)
+        if isinstance(self.core, TaAekfMassEstimator):
+            values["confidence level tau (Eq. 19)"] = f"{self.core.last_tau:.3g}"
+            values["network mass [kg]"] = f"{self.core.last_network_mass:.1f}"
+        wind = getattr(self.core, "wind", None)
+        if wind is not None:
+            east, north = wind.wind_enu
+            values["wind east, north [m/s]"] = f"{east:.2f}, {north:.2f}"
+            values["wind from [deg]"] = f"{wind.wind_from_deg:.0f}"
         return values
 
 

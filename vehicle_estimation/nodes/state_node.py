@@ -1,16 +1,22 @@
 """Vehicle-state node: vx, vy, yaw rate and sideslip on the paper-004 4-wheel model.
 
-Filter (parameter ``filter``), both on the paper-004 4-wheel model with Dugoff tyres
-(Eqs. 1-9) and sideslip from Eq. 14:
+Filter (parameter ``filter``); ``vbackf`` and ``ckf`` on the paper-004 4-wheel model with
+Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14, ``aoukf`` on the paper-002 3-DOF model:
 
 * ``vbackf``: the variational Bayesian adaptive cubature Kalman filter of paper 004 Sec. 4
   (Eqs. 10-13): the measurement-noise covariance is learnt online (inverse-Wishart), so
   time-varying sensor noise (Eq. 34) does not mis-weight the IMU. Its parameters:
   ``vbackf.*``.
 * ``ckf``: the plain cubature Kalman filter, the contrast of paper 004 Sec. 7.
+* ``aoukf``: the adaptive anti-outlier UKF of paper 002 (Sec. 3.3, Eqs. 6-7) on the 3-DOF
+  Magic-Formula model of its Sec. 2, with the GA-BPNN output correction of Eq. 5
+  (``aoukf_correction``: ``auto`` loads the shipped weights for ``vehicle.name`` when the
+  package has them, a path loads that file, empty turns it off). Its tuning: ``aoukf.*``
+  (``aoukf.filter`` ``ukf`` / ``ekf`` gives the paper's contrasts). Gross errors (spikes,
+  bursts, a frozen sensor) are down-weighted or replaced; ``/diagnostics`` counts them.
 
-Shared tuning (Sec. 7.1 defaults): ``p0_diag``, ``q_diag`` (per ``tau`` = 0.01 s) and
-``r_diag`` (the initial R for ``vbackf``).
+Shared tuning of ``ckf``/``vbackf`` (Sec. 7.1 defaults): ``p0_diag``, ``q_diag`` (per ``tau`` =
+0.01 s) and ``r_diag`` (the initial R for ``vbackf``).
 
 Subscribes (sensor-data QoS): ``imu/data`` (measurement [ax, ay, r], the trigger),
 ``vehicle/joint_states`` (steering-wheel angle, four wheel speeds). From other nodes:
@@ -41,18 +47,26 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from vehicle_estimation import topics
+from vehicle_estimation.core.aoukf import AOUKFConfig, VehicleStateAOUKF
 from vehicle_estimation.core.ckf import VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.core.gabpnn import BPCorrection, default_weights_path, load_correction
 from vehicle_estimation.core.vbackf import VBConfig, VehicleStateVBACKF
 from vehicle_estimation.core.vehicle_model import VehicleInputs
 from vehicle_estimation.nodes.base import (
     STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion,
     companion_value, run_node, sec_to_stamp)
-from vehicle_estimation.nodes.conversions import MalformedMessage, chassis_reading, imu_arrays
+from vehicle_estimation.nodes.conversions import (
+    MAX_SPEED, MalformedMessage, chassis_reading, imu_arrays, imu_plausible)
 
-FILTERS = ("ckf", "vbackf")
+FILTERS = ("ckf", "vbackf", "aoukf")
 STALE_AFTER_S = 1.0
 #: How long the filter waits for wheel speeds to start from before it starts from initial_vx [s].
 WHEEL_WAIT_S = 1.0
+#: A road grade varies over a hill's length: at highway speed ~5 s. The correlation time of the
+#: acceleration error an unknown grade causes (see ``missing_slope_std_deg``) [s].
+GRADE_CORRELATION_S = 5.0
+#: A wheel faster than this x MAX_SPEED (allowing for spin) is an absurd reading.
+WHEEL_SPIN_MARGIN = 1.5
 
 
 class StateNode(EstimatorNode):
@@ -93,6 +107,18 @@ class StateNode(EstimatorNode):
             "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
         self.vb_config = (self.declare_config("vbackf", VBConfig())
                           if self.filter_name == "vbackf" else None)
+        self.aoukf_config: AOUKFConfig | None = None
+        self.correction: BPCorrection | None = None
+        if self.filter_name == "aoukf":
+            # initial_vx / init_vx_from_wheel_speeds are the node's, for every filter.
+            self.aoukf_config = self.declare_config(
+                "aoukf", AOUKFConfig(initial_vx=self.initial_vx, init_vx_from_wheel_speeds=self.init_from_wheels),
+                exclude=("initial_vx", "init_vx_from_wheel_speeds"))
+            self.correction = self._load_correction(self.declare_str(
+                "aoukf_correction", "auto",
+                "GA-BPNN output correction (paper 002 Eq. 5) for filter aoukf: 'auto' = the "
+                "package's weights for vehicle.name if it ships them (else none), a path = that "
+                ".npz file, '' = none"))
         self.core = self._make_core()
         self.bias = FusionImuBias()
         self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
@@ -105,6 +131,10 @@ class StateNode(EstimatorNode):
         self._z_sum = np.zeros(3)
         self._z_count = 0
         self._last_step_t = -math.inf
+        self.missing_slope_std = math.radians(self.declare_float(
+            "missing_slope_std_deg", 2.0,
+            "Without a slope estimate the filter assumes a level road and adds the acceleration "
+            "error of a grade of this std to the vx process noise [deg]", 0.0, 30.0))
         self.min_dynamic_speed = self.declare_float(
             "sideslip_min_speed", 3.0,
             "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
@@ -121,7 +151,26 @@ class StateNode(EstimatorNode):
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
         self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
 
-    def _make_core(self) -> VehicleStateCKF:
+    def _load_correction(self, setting: str) -> BPCorrection | None:
+        if not setting:
+            return None
+        path = default_weights_path(self.vehicle.name) if setting == "auto" else setting
+        if setting == "auto" and not path.exists():
+            self.note_event(f"no shipped GA-BPNN weights for vehicle '{self.vehicle.name}': "
+                            "AO-UKF without output correction (train some with train-gabpnn)")
+            return None
+        try:
+            return load_correction(path)
+        except ValueError as exc:
+            raise ParameterError(f"parameter 'aoukf_correction': {exc}") from exc
+
+    def _make_core(self) -> VehicleStateCKF | VehicleStateAOUKF:
+        if self.aoukf_config is not None:
+            try:
+                correction = self.correction.fresh() if self.correction is not None else None
+                return VehicleStateAOUKF(self.vehicle, self.aoukf_config, correction)
+            except (TypeError, ValueError) as exc:
+                raise ParameterError(f"filter 'aoukf': {exc}") from exc
         for name, values, n in (("p0_diag", self.p0_diag, 5), ("q_diag", self.q_diag, 5),
                                 ("r_diag", self.r_diag, 3)):
             if len(values) != n or not all(math.isfinite(v) and v > 0.0 for v in values):
@@ -143,12 +192,16 @@ class StateNode(EstimatorNode):
         except MalformedMessage:
             self.reject("joint_states:malformed")
             return
+        wheels = reading.wheel_speeds
+        if np.any(np.abs(wheels[np.isfinite(wheels)]) * self.vehicle.wheel_radius > WHEEL_SPIN_MARGIN * MAX_SPEED):
+            self.reject("joint_states:implausible")
+            return
         self.chassis = reading
         self.chassis_t = t
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
         v, var = msg.twist.twist.linear.x, msg.twist.covariance[0]
-        if not math.isfinite(v) or abs(v) > 120.0:
+        if not math.isfinite(v) or abs(v) > MAX_SPEED:
             self.reject("speed:invalid")
             return
         if not (math.isfinite(var) and var > 0.0):
@@ -179,6 +232,9 @@ class StateNode(EstimatorNode):
         if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
             self.reject("imu:non_finite")
             return
+        if not imu_plausible(f, w):
+            self.reject("imu:implausible")
+            return
         f, w = self.bias.correct(t, f, w)
         fresh = self.chassis is not None and t - self.chassis_t <= self.stale_input_s
         self.set_missing("vehicle/joint_states", not fresh)
@@ -190,10 +246,17 @@ class StateNode(EstimatorNode):
         if not math.isfinite(steer):
             steer = 0.0
         self._steer = steer
+        slope = self._upstream(self.slope, t, math.nan, "road slope")
+        # Without the slope the filter assumes a level road, and the grade's g sin(theta) is an
+        # unknown, correlated acceleration error on vx: add it as process noise (white-noise
+        # equivalent 2 sigma^2 tau), so the variance says the estimate knows less.
+        self.core.extra_vx_noise_density = (
+            2.0 * (self.vehicle.gravity * math.sin(self.missing_slope_std)) ** 2 * GRADE_CORRELATION_S
+            if math.isnan(slope) else 0.0)
         inputs = VehicleInputs(
             steer_angle=steer,
             wheel_speeds=wheels,
-            slope=self._upstream(self.slope, t, 0.0, "road slope"),
+            slope=0.0 if math.isnan(slope) else slope,
             mass=self._upstream(self.mass, t, self.vehicle.mass, "mass"),
         )
         if not self.core.initialised and self.init_from_wheels and not np.all(np.isfinite(wheels)):
@@ -214,8 +277,11 @@ class StateNode(EstimatorNode):
         self._z_sum[:] = 0.0
         self._z_count = 0
         self._last_step_t = t
+        reinitialisations = self.core.reinitialisations
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
+        if self.core.reinitialisations != reinitialisations:
+            self.note_event(f"vehicle-state filter {self.core.last_event}")
         if self.speed_fallback:
             self._update_speed_fallback(t, wheels)
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
@@ -273,6 +339,11 @@ class StateNode(EstimatorNode):
         if self.filter_name == "vbackf":
             extra = {"learnt R diagonal": np.array2string(np.diag(self.core.measurement_noise), precision=6),
                      "VB fallbacks": str(self.core.vb_fallbacks)}
+        elif isinstance(self.core, VehicleStateAOUKF):
+            # Measurements the anti-outlier step down-weighted, ignored or replaced (Sec. 3.3).
+            extra = {f"aoukf {k}": str(v) for k, v in self.core.counters.items()}
+            extra["GA-BPNN correction"] = "on" if self.core.correction is not None else "off"
+        extra["filter re-initialisations"] = str(self.core.reinitialisations)
         return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 

@@ -168,13 +168,59 @@ def bench_state(d: DriveArrays) -> list[StepTiming]:
 
 
 def bench_aoukf(d: DriveArrays) -> list[StepTiming]:
-    """Our anti-outlier UKF (with and without the BP correction) and filterpy's UKF on the same
-    3-DOF model, the same data and the same tuning."""
+    """The vehicle-state AO-UKF of paper 002 (plain UKF, anti-outlier, + GA-BPNN), and our
+    generic UKF against filterpy's on the same 3-DOF model, data and tuning (predict + update
+    of [ay, r]). filterpy calls the model once per sigma point; ours once per step on all 7."""
+    from vehicle_estimation.core.aoukf import AOUKFConfig, ThreeDofModel, UnscentedKalmanFilter, VehicleStateAOUKF
+    from vehicle_estimation.core.gabpnn import default_weights_path, load_correction
+    samples = d.state_inputs()
+    out = []
+    weights = default_weights_path(d.vehicle.name)
+    for label, config, correction in (
+            ("AO-UKF: plain UKF (paper 002, 3 states)", AOUKFConfig(filter="ukf"), None),
+            ("AO-UKF: anti-outlier UKF (Sec. 3.3)", AOUKFConfig(), None),
+            ("AO-UKF: anti-outlier UKF + GA-BPNN (Eq. 5)", AOUKFConfig(),
+             load_correction(weights) if weights.exists() else None)):
+        f = VehicleStateAOUKF(d.vehicle, config, correction)
+        out.append(time_steps(label, (lambda s=s, f=f: f.step(*s) for s in samples)))
+
+    config = AOUKFConfig()
+    model = ThreeDofModel.from_params(d.vehicle, config)
+    Q = np.diag(config.q_diag)
+    R = np.diag([config.r_ay, config.r_yaw_rate])
+    x0 = np.array([float(d.at_truth("vx", np.array([samples[0][0]]))[0]), 0.0, 0.0])
+    P0 = np.diag(config.p0_diag)
+    steps = [(t1 - t0, float(z1[0]), float(inputs.steer_angle), z1[1:3])
+             for (t0, _, _), (t1, inputs, z1) in zip(samples[:-1], samples[1:])]
+    ours = UnscentedKalmanFilter(lambda X, dt, ax, delta: model.transition(X, dt, ax, delta),
+                                 lambda X, delta: model.measurement(X, delta), Q,
+                                 np.diag([config.r_ay, config.r_yaw_rate, config.r_wheel_speed]), x0, P0,
+                                 alpha=config.ukf_alpha, beta=config.ukf_beta, kappa=config.ukf_kappa)
+    select = np.array([0, 1])
+
+    def our_step(dt, ax, delta, z):
+        ours.predict(dt, ax, delta)
+        ours.update(z, delta, select=select)
+    out.append(time_steps("UKF, ours (vectorised sigma points): predict + update",
+                          (lambda s=s: our_step(*s) for s in steps)))
     try:
-        from vehicle_estimation.core import aoukf
-    except ImportError as exc:   # pragma: no cover - the module ships with the package
-        return [StepTiming("anti-outlier UKF", 0, math.nan, math.nan, f"unavailable: {exc}")]
-    return aoukf.benchmark_steps(d.vehicle, d.state_inputs(), time_steps)
+        from filterpy.kalman import MerweScaledSigmaPoints
+        from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
+    except ImportError as exc:
+        out.append(StepTiming("filterpy UKF", 0, math.nan, math.nan, f"unavailable: {exc} (pip install filterpy)"))
+        return out
+    points = MerweScaledSigmaPoints(3, alpha=config.ukf_alpha, beta=config.ukf_beta, kappa=config.ukf_kappa)
+    theirs = FilterpyUKF(dim_x=3, dim_z=2, dt=0.01, points=points,
+                         fx=lambda x, dt, ax, delta: model.transition(x, dt, ax, delta),
+                         hx=lambda x, delta: model.measurement(x, delta)[:2])
+    theirs.x, theirs.P, theirs.Q, theirs.R = x0.copy(), P0.copy(), Q.copy(), R.copy()
+
+    def their_step(dt, ax, delta, z):
+        theirs.predict(dt=dt, ax=ax, delta=delta)
+        theirs.update(z, delta=delta)
+    out.append(time_steps("filterpy UKF, same model and data: predict + update",
+                          (lambda s=s: their_step(*s) for s in steps)))
+    return out
 
 
 def _mass_samples(d: DriveArrays, rate_hz: float) -> list[dict[str, float]]:
@@ -216,6 +262,8 @@ def bench_mass(d: DriveArrays) -> list[StepTiming]:
     except ImportError as exc:   # pragma: no cover
         out.append(StepTiming("mass: TA-AEKF", 0, math.nan, math.nan, f"unavailable: {exc}"))
         return out
+    import torch
+    torch.set_num_threads(1)       # as the mass node runs it
     core = TaAekfMassEstimator(d.vehicle)
     samples = _mass_samples(d, 100.0)
     out.append(time_steps("mass: TA-AEKF (paper 000, 100 Hz, incl. transformer inference)",
@@ -465,7 +513,7 @@ def main(args: argparse.Namespace) -> int:
         if "cores" in sections:
             rows = run_cores(args.core_seconds)
             result["cores"] = [dataclasses.asdict(r) for r in rows]
-            ours = next((r for r in rows if r.name.startswith("anti-outlier UKF: plain UKF")), None)
+            ours = next((r for r in rows if r.name.startswith("UKF, ours")), None)
             theirs = next((r for r in rows if r.name.startswith("filterpy")), None)
             if ours and theirs and ours.median_us > 0:
                 result["ukf_vs_filterpy"] = theirs.median_us / ours.median_us

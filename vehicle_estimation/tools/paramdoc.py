@@ -27,10 +27,10 @@ END = "<!-- end of parameter reference -->"
 #: (node name, node class path, selector parameter, its values): one start per value.
 VARIANTS: tuple[tuple[str, str, str | None, tuple[str, ...]], ...] = (
     ("fusion", "vehicle_estimation.nodes.fusion_node:FusionNode", None, ()),
-    ("vehicle_state", "vehicle_estimation.nodes.state_node:StateNode", "filter", ("vbackf", "ckf")),
+    ("vehicle_state", "vehicle_estimation.nodes.state_node:StateNode", "filter", ("vbackf", "ckf", "aoukf")),
     ("road_slope", "vehicle_estimation.nodes.slope_node:SlopeNode", "method",
      ("cubic_prediction", "classical", "fusion_pitch")),
-    ("mass", "vehicle_estimation.nodes.mass_node:MassNode", "method", ("ffrls", "rls")),
+    ("mass", "vehicle_estimation.nodes.mass_node:MassNode", "method", ("ffrls", "rls", "ta_aekf")),
 )
 #: Declared by rclpy itself, not by us.
 IGNORED = ("use_sim_time", "start_type_description_service")
