@@ -85,6 +85,8 @@ class Harness:
         from collections import Counter
         sent: Counter[str] = Counter()
         rx = getattr(self.node, "_rx", None)
+        # counts so far: a second call must wait for its own messages, not earlier calls' ones
+        base = Counter(rx) if rx is not None else Counter()
         for start in range(0, len(items), chunk):
             for topic, msg in items[start:start + chunk]:
                 pub = self.probe.pubs[topic]
@@ -93,7 +95,7 @@ class Harness:
             if rx is None:
                 self.spin(0.02)
             else:
-                ok = self.wait_for(lambda: all(rx[t] >= n for t, n in sent.items()), timeout=10.0)
+                ok = self.wait_for(lambda: all(rx[t] - base[t] >= n for t, n in sent.items()), timeout=10.0)
                 assert ok, f"node received {dict(rx)} of {dict(sent)}"
         self.spin(0.3)
 

@@ -201,8 +201,9 @@ def test_slope_node_observers_find_a_grade(method):
         h.close()
 
 
-def test_state_node_estimates_speed_from_wheels_and_imu():
-    node = StateNode(parameter_overrides=vehicle_overrides())
+@pytest.mark.parametrize("filter_name", ["vbackf", "ckf", "aoukf"])
+def test_state_node_estimates_speed_from_wheels_and_imu(filter_name):
+    node = StateNode(parameter_overrides=vehicle_overrides() + [Parameter("filter", value=filter_name)])
     h = Harness(node)
     try:
         h.probe.publisher_for(Imu, topics.IMU)
@@ -344,6 +345,48 @@ def test_mass_node_recovers_mass_from_drive_force(with_slope):
         h.close()
 
 
+def test_mass_node_rls_with_wind_compensation_takes_the_heading_from_the_odometry():
+    """A 6 m/s headwind on an eastbound drive (fusion odometry: yaw 0): the RLS with
+    ``mass.wind_compensation`` feeds the heading to the wind estimator, which learns the wind
+    from the force residual; the node reports it in /diagnostics."""
+    mass_true, headwind = 1800.0, 6.0
+    node = MassNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("method", value="rls"), Parameter("mass.wind_compensation", value=True)])
+    h = Harness(node)
+    try:
+        h.probe.publisher_for(Odometry, topics.ODOMETRY)
+        diagnostics = h.probe.watch(DiagnosticArray, "/diagnostics")
+        out = _connect_mass_inputs(h)
+        h.connect([topics.ODOMETRY])
+        p = node.vehicle
+        stream, v = [], 12.0
+        for topic, msg in _mass_drive_stream(p, mass_true, True, v0=12.0):
+            if topic == topics.POWERTRAIN:
+                # the drive force that also overcomes the extra drag of the headwind
+                t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+                msg.effort[1] += 0.5 * p.air_density * p.drag_area * ((v + headwind) ** 2 - v * v)
+                odom = Odometry()
+                sec_to_time(t, odom.header.stamp)
+                odom.header.frame_id, odom.child_frame_id = "odom", "base_link"
+                odom.pose.pose.orientation.w = 1.0          # yaw 0: heading east (REP-103 ENU)
+                odom.twist.twist.linear.x = v
+                stream.append((topics.ODOMETRY, odom))
+            if topic == topics.SPEED:
+                v = msg.twist.twist.linear.x        # sent before the powertrain of its stamp
+            stream.append((topic, msg))
+        h.publish_stream(stream)
+        assert h.wait_for(lambda: len(out) > 50)
+        wind = node.core.wind
+        assert wind is not None and wind.samples_used > 100
+        east, north = wind.wind_enu
+        assert east == pytest.approx(-headwind, abs=2.0) and abs(north) < 6.0   # blowing west
+        assert out[-1].vector.x == pytest.approx(mass_true, rel=0.03)
+        assert h.wait_for(lambda: any(kv.key == "wind east, north [m/s]" for d in diagnostics
+                                      for st in d.status for kv in st.values), timeout=5.0)
+    finally:
+        h.close()
+
+
 def test_mass_node_ffrls_uses_braking_samples():
     """FFRLS (paper 004 Eqs. 28-31): driving and braking pulses, brake torque on the wheels."""
     mass_true = 1650.0
@@ -367,6 +410,10 @@ def test_mass_node_ffrls_uses_braking_samples():
 @pytest.mark.parametrize("module, override, name", [
     ("mass_node", "ffrls.forgetting_factor:=1.5", "forgetting_factor"),
     ("mass_node", "method:=bogus", "method"),
+    ("mass_node", "method:=ta_aekf;ta_aekf.fixed_tau:=2.0", "fixed_tau"),
+    ("mass_node", "method:=ta_aekf;ta_aekf.model_path:=/nonexistent/model", "ta_aekf.model_path"),
+    ("state_node", "filter:=aoukf;aoukf.outlier_c:=-1.0", "outlier_c"),
+    ("state_node", "filter:=aoukf;aoukf_correction:=/nonexistent/weights.npz", "aoukf_correction"),
     ("slope_node", "method:=bogus", "method"),
     ("state_node", "vehicle.mass:=-5.0", "vehicle.mass"),
     ("fusion_node", "fusion.mounting_rpy:=[0.0, 5.0, 0.0]", "mounting_rpy"),
@@ -374,7 +421,8 @@ def test_mass_node_ffrls_uses_braking_samples():
 def test_bad_parameter_stops_node_naming_it(module, override, name):
     proc = subprocess.run(
         [sys.executable, "-m", f"vehicle_estimation.nodes.{module}", "--ros-args",
-         "--params-file", str(params_file("sedan_d_class")), "-p", override],
+         "--params-file", str(params_file("sedan_d_class"))]
+        + [arg for assignment in override.split(";") for arg in ("-p", assignment)],
         capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr
     assert name in proc.stderr

@@ -240,6 +240,10 @@ class VehicleStateCKF:
         self.last_event = ""
         self.updates = 0
         self.speed_updates = 0
+        #: Extra process noise on vx [(m/s^2)^2 s], added as ``density * dt`` per step: the
+        #: owner sets it while an input is unknown (the node: no slope estimate, so the grade's
+        #: g sin(theta) acts on vx as a correlated acceleration error).
+        self.extra_vx_noise_density = 0.0
 
     def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
         """Factory hook: the filter on the model closures ``f``, ``h`` (called once by
@@ -272,7 +276,9 @@ class VehicleStateCKF:
         rejected: non-finite ``t``/inputs or stamp not increasing (nothing changes), or
         non-finite ``z`` (the state is still predicted to ``t``). A gap above
         ``max_gap_s`` re-initialises the filter (``reinitialisations``, ``last_event``)
-        and the sample is then used as the first one.
+        and the sample is then used as the first one. So does a numerical failure (moments
+        not finite, or a covariance no longer positive definite, after absurd inputs); the
+        step then returns False.
         """
         t = float(t)
         z = np.asarray(z, dtype=float).reshape(-1)
@@ -301,19 +307,49 @@ class VehicleStateCKF:
             assert self.t is not None   # initialised implies a stamp
             dt = t - self.t
             Q = self.config.Q * (dt / self.config.nominal_dt) if self.config.scale_q_with_dt else None
-            self._ckf.predict(dt, inputs, Q=Q)
+            if self.extra_vx_noise_density > 0.0:
+                Q = np.array(self._ckf.Q if Q is None else Q, dtype=float)
+                Q[0, 0] += self.extra_vx_noise_density * dt
+            try:
+                with np.errstate(all="ignore"):
+                    self._ckf.predict(dt, inputs, Q=Q)
+            except np.linalg.LinAlgError:
+                self._ckf._x[:] = np.nan   # handled as a numerical failure below
         self.t = t
         if not np.all(np.isfinite(z)):
+            if not self._valid_moments():
+                self.reset(None)
+                self.reinitialisations += 1
+                self.last_event = "re-initialised after numerical failure"
+                return False
             self.rejected["nonfinite_measurement"] += 1
             self.last_event = "non-finite measurement"
             return False
-        self._ckf.update(z, inputs)
-        if not (np.all(np.isfinite(self._ckf._x)) and np.all(np.isfinite(self._ckf._P))):
+        if np.all(np.isfinite(self._ckf._x)) and np.all(np.isfinite(self._ckf._P)):
+            try:
+                with np.errstate(all="ignore"):
+                    self._ckf.update(z, inputs)
+            except np.linalg.LinAlgError:
+                self._ckf._x[:] = np.nan   # handled as a numerical failure below
+        if not self._valid_moments():
             self.reset(None)
             self.reinitialisations += 1
             self.last_event = "re-initialised after numerical failure"
             return False
         self.updates += 1
+        return True
+
+    def _valid_moments(self) -> bool:
+        """Finite mean and positive-definite covariance. Absurd inputs (the model driven at
+        thousands of m/s) can leave a finite P that rounding has made indefinite (negative
+        variances) or make the cubature factorisation fail: a numerical failure like a NaN."""
+        x, P = self._ckf._x, self._ckf._P
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            return False
+        try:
+            np.linalg.cholesky(P)
+        except np.linalg.LinAlgError:
+            return False
         return True
 
     def update_speed(self, vx: float, variance: float) -> bool:

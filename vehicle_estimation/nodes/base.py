@@ -289,6 +289,12 @@ class EstimatorNode(Node):
             "A stamp this far behind the last one processed resets the estimators [s]", 0.001, 3600.0)
         self.diagnostics_period = self.declare_float(
             "diagnostics_period_s", 1.0, "Period of /diagnostics on the node clock [s]", 0.01, 60.0)
+        self.frozen_imu_samples = self.declare_int(
+            "frozen_imu_samples", 0,
+            "After this many bit-identical IMU samples in a row, further repeats are rejected as a "
+            "frozen sensor (a real IMU's noise never repeats; a hung driver republishes); 0: off", 0, 100000)
+        self._frames: dict[str, str] = {}
+        self._imu_repeat: dict[str, tuple[tuple[float, ...], int]] = {}
 
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(self.diagnostics_period, self._publish_diagnostics)
@@ -310,9 +316,13 @@ class EstimatorNode(Node):
         return value
 
     def declare_float(self, name: str, default: float, description: str,
-                      low: float | None = None, high: float | None = None) -> float:
+                      low: float | None = None, high: float | None = None, *, allow_nan: bool = False) -> float:
+        """A double parameter; non-finite values stop the node, except NaN with ``allow_nan``
+        (where NaN means "automatic", as the config's docs say)."""
         value = self._declare(name, float(default), ParamSpec.descriptor(description, low=low, high=high))
         value = float(value)
+        if allow_nan and math.isnan(value):
+            return value
         if not math.isfinite(value):
             raise ParameterError(f"parameter '{name}' must be finite, got {value}")
         return value
@@ -341,7 +351,8 @@ class EstimatorNode(Node):
     @staticmethod
     def config_field_docs(cls: type) -> dict[str, str]:
         """One line of documentation per dataclass field, from the field's trailing comment or
-        the class docstring's ``Attributes:`` entry (base classes included)."""
+        the class docstring's ``Attributes:`` entry or ``* ``name``: text`` bullet (base classes
+        included)."""
         import inspect
         import re
 
@@ -364,29 +375,42 @@ class EstimatorNode(Node):
                     elif entry:
                         for name in entry:
                             docs[name] += " " + line.strip()
+            # "* ``name``: text" bullets (one or more names), continued on indented lines
+            for m in re.finditer(r"^\* ((?:``\w+``(?:, | and )?)+)(?: \([^)]*\))?:\s*(.+?)(?=^\* |^\S|\Z)",
+                                 doc, re.M | re.S):
+                text = " ".join(m.group(2).split())
+                for name in re.findall(r"``(\w+)``", m.group(1)):
+                    docs.setdefault(name, text)
             for m in re.finditer(r"^    (\w+): [^=\n]+=[^#\n]*#\s*(.+)$", source, re.M):
                 docs[m.group(1)] = m.group(2).strip()
         return docs
 
-    def declare_config(self, prefix: str, defaults: Any) -> Any:
+    def declare_config(self, prefix: str, defaults: Any, exclude: tuple[str, ...] = ()) -> Any:
         """Declare every scalar, bool, str and tuple/list field of the dataclass instance
         ``defaults`` as ``<prefix>.<field>`` and return a validated copy with the values.
 
         Fields that are None or arrays keep their defaults (they are not ROS-parameter
-        shaped). ``validate()`` errors become a :class:`ParameterError` that names the field.
+        shaped), as do the fields named in ``exclude`` (set by a node-level parameter).
+        ``validate()`` errors become a :class:`ParameterError` that names the field.
         """
         import dataclasses
 
         values: dict[str, Any] = {}
         field_docs = self.config_field_docs(type(defaults))
         for field in dataclasses.fields(defaults):
+            if field.name in exclude:
+                continue
             value = getattr(defaults, field.name)
             name = f"{prefix}.{field.name}"
             doc = field_docs.get(field.name) or f"{type(defaults).__name__}.{field.name}"
             if isinstance(value, bool):
                 values[field.name] = self.declare_bool(name, value, doc)
-            elif isinstance(value, (int, float)):
-                values[field.name] = type(value)(self.declare_float(name, float(value), doc))
+            elif isinstance(value, int):
+                values[field.name] = self.declare_int(name, value, doc)
+            elif isinstance(value, float):
+                # A NaN default means "automatic" (validate() checks the rest).
+                values[field.name] = type(value)(self.declare_float(
+                    name, float(value), doc, allow_nan=isinstance(value, float) and math.isnan(value)))
             elif isinstance(value, str):
                 values[field.name] = self.declare_str(name, value, doc)
             elif isinstance(value, (tuple, list)) and all(
@@ -521,8 +545,11 @@ class EstimatorNode(Node):
                     "resetting estimators (bag loop or restarted source)")
                 self.resets += 1
                 self._last_stamp_by_topic.clear()
+                self._frames.clear()
                 self.reset_estimators()
             self._last_stamp_by_topic[topic] = max(last, t) if t >= last - self.time_jump_reset_s else t
+            if not self._input_consistent(topic, msg):
+                continue
             try:
                 handler(t, msg)
             except Exception:  # never let one bad message take the node down
@@ -530,6 +557,36 @@ class EstimatorNode(Node):
                 self.get_logger().error(
                     f"error handling {topic} at t={t:.3f}:\n{traceback.format_exc(limit=4)}",
                     throttle_duration_sec=5.0)
+
+    def _input_consistent(self, topic: str, msg: Any) -> bool:
+        """Checks every sensor input gets before its handler (rejections are counted):
+
+        * ``frame_id``: the frame of a topic's first message is its frame; a message in another
+          frame is a second source on the topic or a misconfigured driver (``<topic>:frame_id``).
+          The nodes do not transform: the contract fixes each input's frame (README).
+        * a frozen IMU (``frozen_imu_samples``): ``<topic>:frozen``.
+        """
+        header = getattr(msg, "header", None)
+        if header is not None:
+            frame = str(header.frame_id)
+            expected = self._frames.setdefault(topic, frame)
+            if frame != expected:
+                self.reject(f"{topic}:frame_id")
+                self.get_logger().warn(f"{topic}: frame_id '{frame}', expected '{expected}': rejected",
+                                       throttle_duration_sec=5.0)
+                return False
+        if self.frozen_imu_samples > 0 and hasattr(msg, "linear_acceleration"):
+            a, w = msg.linear_acceleration, msg.angular_velocity
+            key = (a.x, a.y, a.z, w.x, w.y, w.z)
+            last, repeats = self._imu_repeat.get(topic, ((), 0))
+            repeats = repeats + 1 if key == last else 0
+            self._imu_repeat[topic] = (key, repeats)
+            if repeats >= self.frozen_imu_samples:
+                self.reject(f"{topic}:frozen")
+                self.set_missing(f"{topic} (frozen)", True)
+                return False
+            self.set_missing(f"{topic} (frozen)", False)
+        return True
 
     def _on_sync(self, msg: DiagnosticStatus) -> None:
         self._pending_sync = msg

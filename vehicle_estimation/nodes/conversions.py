@@ -12,6 +12,11 @@ from vehicle_estimation import topics
 
 NAN = float("nan")
 
+# Physical plausibility limits of raw inputs: beyond them a value is a fault, not a reading.
+MAX_SPECIFIC_FORCE = 160.0   # m/s^2, ~16 g: a car IMU saturates well below
+MAX_ANGULAR_RATE = 35.0      # rad/s, ~2000 deg/s
+MAX_SPEED = 100.0            # m/s, 360 km/h (README: 400 km/h is absurd)
+
 
 class MalformedMessage(ValueError):
     """A message that cannot be read at all (e.g. JointState arrays of the wrong length)."""
@@ -111,6 +116,11 @@ def imu_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.array([a.x, a.y, a.z], dtype=float), np.array([w.x, w.y, w.z], dtype=float)
 
 
+def imu_plausible(f: np.ndarray, w: np.ndarray) -> bool:
+    """Finite IMU arrays (see :func:`imu_arrays`) within the physical limits above."""
+    return bool(np.max(np.abs(f)) <= MAX_SPECIFIC_FORCE and np.max(np.abs(w)) <= MAX_ANGULAR_RATE)
+
+
 def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
     """``(stamp, (stamp, vx))`` of an Odometry or TwistWithCovarianceStamped, for a history.
 
@@ -120,6 +130,22 @@ def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
     t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
     v = msg.twist.twist.linear.x
     return (t, (t, v)) if math.isfinite(v) else None
+
+
+def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
+    """``(stamp, (stamp, vx, yaw))`` of an Odometry, for a history: the body-frame forward
+    speed and the ENU yaw of ``pose.pose.orientation`` (NaN when the quaternion is not finite
+    or has zero norm; the speed alone is still usable)."""
+    stamp = msg.header.stamp
+    t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
+    v = msg.twist.twist.linear.x
+    if not math.isfinite(v):
+        return None
+    q = msg.pose.pose.orientation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    n = x * x + y * y + z * z + w * w
+    yaw = math.atan2(2.0 * (w * z + x * y) / n, 1.0 - 2.0 * (y * y + z * z) / n) if n > 0.0 else math.nan
+    return (t, (t, v, yaw if math.isfinite(yaw) else math.nan))
 
 
 def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:

@@ -25,13 +25,10 @@ from vehicle_estimation.core.geodesy import LocalTangentPlane
 from vehicle_estimation.core.rotations import rotmat_to_quat
 from vehicle_estimation.nodes.base import (
     STAMP_TOLERANCE_S, EstimatorNode, companion, finite, run_node, sec_to_stamp)
+# Physical plausibility limits for raw inputs (beyond these a value is a fault, not a reading).
+from vehicle_estimation.nodes.conversions import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE, MAX_SPEED
 
 FUSION_GRADE = topics.FUSION_GRADE
-
-# Physical plausibility limits for raw inputs (beyond these a value is a fault, not a reading).
-MAX_SPECIFIC_FORCE = 160.0   # m/s^2, ~16 g: a car IMU saturates well below
-MAX_ANGULAR_RATE = 35.0      # rad/s, ~2000 deg/s
-MAX_SPEED = 120.0            # m/s
 
 
 class FusionNode(EstimatorNode):
@@ -214,6 +211,8 @@ class FusionNode(EstimatorNode):
             })
         for k, v in getattr(ekf, "rejected", {}).items():
             values[f"filter rejected {k}"] = str(v)
+        for k, v in getattr(ekf, "events", {}).items():     # imu_gap, align_restart, ...
+            values[f"filter event {k}"] = str(v)
         return values
 
 

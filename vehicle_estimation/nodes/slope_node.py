@@ -33,7 +33,8 @@ from vehicle_estimation.core import slope as slope_core
 from vehicle_estimation.nodes.base import (
     STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion,
     companion_value, run_node)
-from vehicle_estimation.nodes.conversions import forward_speed_entry, imu_arrays, planar_velocity_entry
+from vehicle_estimation.nodes.conversions import (
+    MAX_SPEED, forward_speed_entry, imu_arrays, imu_plausible, planar_velocity_entry)
 
 METHODS = tuple(slope_core.SLOPE_METHODS)
 CONFIGS = {"classical": slope_core.ClassicalSlopeConfig,
@@ -113,7 +114,7 @@ class SlopeNode(EstimatorNode):
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
         v = msg.twist.twist.linear.x
-        if math.isfinite(v) and abs(v) < 120.0:
+        if math.isfinite(v) and abs(v) <= MAX_SPEED:
             self.can_speed = (t, v)
         else:
             self.reject("speed:invalid")
@@ -134,6 +135,9 @@ class SlopeNode(EstimatorNode):
         f, w = imu_arrays(msg)
         if not all(math.isfinite(x) for x in (*f, *w)):
             self.reject("imu:non_finite")
+            return
+        if not imu_plausible(f, w):
+            self.reject("imu:implausible")
             return
         if self.method == "fusion_pitch":
             item = self.grade.at(t)
