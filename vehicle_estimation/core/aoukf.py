@@ -106,7 +106,38 @@ def sqrt_psd(P: np.ndarray) -> np.ndarray:
 
 
 # ========================================================================================
-class UnscentedKalmanFilter:
+class _AdditiveNoiseFilter:
+    """State handling shared by :class:`UnscentedKalmanFilter` and
+    :class:`ExtendedKalmanFilter`: models ``f``/``h`` on batches of states, additive ``Q``/``R``,
+    the mean and covariance (read as copies), and the last prior for the GA-BPNN features."""
+
+    def __init__(self, f: Callable, h: Callable, Q, R, x0, P0):
+        self._x = np.array(x0, dtype=float).reshape(-1)
+        self.n = self._x.size
+        self._P = _matrix(P0, self.n, "P0").copy()
+        self.Q = _matrix(Q, self.n, "Q")
+        self.R = np.atleast_2d(np.diag(R) if np.ndim(R) == 1 else np.asarray(R, dtype=float))
+        self.m = self.R.shape[0]
+        self.f, self.h = f, h
+        self.x_prior = self._x.copy()
+        self.P_prior = self._P.copy()
+        self.last_innovation: Optional[np.ndarray] = None
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._x.copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._P.copy()
+
+    def reset(self, x0, P0) -> None:
+        self._x = np.array(x0, dtype=float).reshape(self.n)
+        self._P = _matrix(P0, self.n, "P0").copy()
+        self.x_prior, self.P_prior = self._x.copy(), self._P.copy()
+
+
+class UnscentedKalmanFilter(_AdditiveNoiseFilter):
     """Generic UKF, additive noise: ``x_k = f(x_k-1, dt, *args) + v``, ``z = h(x, *args) + w``.
 
     Scaled sigma points ``X_0 = x``, ``X_i = x +- gamma S_i`` (``S S^T = P``,
@@ -126,13 +157,8 @@ class UnscentedKalmanFilter:
 
     def __init__(self, f: Callable, h: Callable, Q, R, x0, P0, *, alpha: float = 1.0,
                  beta: float = 2.0, kappa: float = 0.0):
-        self._x = np.array(x0, dtype=float).reshape(-1)
-        self.n = n = self._x.size
-        self._P = _matrix(P0, n, "P0").copy()
-        self.Q = _matrix(Q, n, "Q")
-        self.R = np.atleast_2d(np.diag(R) if np.ndim(R) == 1 else np.asarray(R, dtype=float))
-        self.m = self.R.shape[0]
-        self.f, self.h = f, h
+        super().__init__(f, h, Q, R, x0, P0)
+        n = self.n
         lam = alpha * alpha * (n + kappa) - n
         if not n + lam > 0.0:
             raise ValueError("alpha, kappa give n + lambda <= 0")
@@ -141,24 +167,8 @@ class UnscentedKalmanFilter:
         self.Wc = self.Wm.copy()
         self.Wm[0] = lam / (n + lam)
         self.Wc[0] = self.Wm[0] + 1.0 - alpha * alpha + beta
-        self.x_prior = self._x.copy()
-        self.P_prior = self._P.copy()
-        self.last_innovation: Optional[np.ndarray] = None
         self.last_innovation_covariance: Optional[np.ndarray] = None
         self.last_gain: Optional[np.ndarray] = None
-
-    @property
-    def x(self) -> np.ndarray:
-        return self._x.copy()
-
-    @property
-    def P(self) -> np.ndarray:
-        return self._P.copy()
-
-    def reset(self, x0, P0) -> None:
-        self._x = np.array(x0, dtype=float).reshape(self.n)
-        self._P = _matrix(P0, self.n, "P0").copy()
-        self.x_prior, self.P_prior = self._x.copy(), self._P.copy()
 
     def sigma_points(self, x: Optional[np.ndarray] = None, P: Optional[np.ndarray] = None) -> np.ndarray:
         """The ``2n + 1`` scaled sigma points as a ``(2n+1, n)`` array."""
@@ -335,7 +345,7 @@ class AntiOutlierUKF(UnscentedKalmanFilter):
 
 
 # ========================================================================================
-class ExtendedKalmanFilter:
+class ExtendedKalmanFilter(_AdditiveNoiseFilter):
     """EKF with central-difference Jacobians (the paper's contrast, Table 2).
 
     ``f``/``h`` follow the calling convention of :class:`UnscentedKalmanFilter` (batches of
@@ -344,30 +354,8 @@ class ExtendedKalmanFilter:
     """
 
     def __init__(self, f: Callable, h: Callable, Q, R, x0, P0, *, rel_step: float = 1e-5):
-        self._x = np.array(x0, dtype=float).reshape(-1)
-        self.n = self._x.size
-        self._P = _matrix(P0, self.n, "P0").copy()
-        self.Q = _matrix(Q, self.n, "Q")
-        self.R = np.atleast_2d(np.diag(R) if np.ndim(R) == 1 else np.asarray(R, dtype=float))
-        self.m = self.R.shape[0]
-        self.f, self.h = f, h
+        super().__init__(f, h, Q, R, x0, P0)
         self.rel_step = rel_step
-        self.x_prior = self._x.copy()
-        self.P_prior = self._P.copy()
-        self.last_innovation: Optional[np.ndarray] = None
-
-    @property
-    def x(self) -> np.ndarray:
-        return self._x.copy()
-
-    @property
-    def P(self) -> np.ndarray:
-        return self._P.copy()
-
-    def reset(self, x0, P0) -> None:
-        self._x = np.array(x0, dtype=float).reshape(self.n)
-        self._P = _matrix(P0, self.n, "P0").copy()
-        self.x_prior, self.P_prior = self._x.copy(), self._P.copy()
 
     def _points(self) -> tuple[np.ndarray, np.ndarray]:
         eps = self.rel_step * np.maximum(np.abs(self._x), 1.0)

@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from vehicle_estimation.core.mass_rls import _finite
 from vehicle_estimation.vehicle import VehicleParams, dataclass_from_mapping
 
 if TYPE_CHECKING:   # torch only when a model is loaded
@@ -231,13 +232,6 @@ class AdaptiveEKF:
         return used
 
 
-def _finite(value: Any) -> bool:
-    if value is None or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except (TypeError, ValueError):
-        return False
 
 
 # --------------------------------------------------------------------- features, Eq. (15)
