@@ -231,3 +231,16 @@ def test_cli(tmp_path):
     assert main(["--scenario", "short", "--out", str(out), "--duration", "5", "--seed", "3", "--mass", "1700"]) == 0
     assert (out / "metadata.yaml").is_file()
     assert main(["--scenario", "short", "--out", str(out)]) == 2
+
+
+def test_bag_paths_that_could_not_be_read_back_are_refused(tmp_path, short_result):
+    """A rosbag2 directory named '*.bag' would be read as a ROS 1 bag file: refused up front,
+    as is an existing path; the CLI says why with exit code 2."""
+    with pytest.raises(ValueError, match="must not end in '.bag'"):
+        write_bag(short_result, tmp_path / "drive.bag")
+    assert not (tmp_path / "drive.bag").exists()
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(FileExistsError):
+        write_bag(short_result, tmp_path / "taken")
+    from vehicle_estimation.sim.cli import main
+    assert main(["--scenario", "short", "--duration", "2", "--out", str(tmp_path / "x.bag")]) == 2

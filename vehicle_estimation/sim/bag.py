@@ -257,19 +257,29 @@ def build_streams(result) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     return streams
 
 
+def check_new_bag_path(path) -> Path:
+    """A path a new rosbag2 directory can be written to: it must not exist, and must not end in
+    ``.bag``: rosbags (and ``ros2 bag``) read such a path as a ROS 1 bag file, so the bag could
+    not be opened again. Raises ``FileExistsError`` / ``ValueError`` saying which."""
+    path = Path(path)
+    if path.suffix == ".bag":
+        raise ValueError(f"{path}: a rosbag2 directory must not end in '.bag' (it would be read as a "
+                         f"ROS 1 bag file); name it e.g. {path.with_suffix('')}")
+    if path.exists():
+        raise FileExistsError(f"{path} exists")
+    return path
+
+
 def write_bag(result, path) -> Path:
     """Write every topic of a simulation in global stamp order to a new MCAP rosbag2 directory."""
-    if Path(path).exists():          # before the streams are built: that is the slow part
-        raise FileExistsError(f"{path} exists")
+    check_new_bag_path(path)         # before the streams are built: that is the slow part
     return write_streams(build_streams(result), path)
 
 
 def write_streams(streams, path) -> Path:
     """Write ``(topic, msgtype, stamps_ns, serialized rows)`` streams in global stamp order (log
     time = header stamp) to a new MCAP rosbag2 directory ``path``."""
-    path = Path(path)
-    if path.exists():
-        raise FileExistsError(f"{path} exists")
+    path = check_new_bag_path(path)
     ts = typestore()
     # global order: by stamp, ties by topic order (stable sort)
     stamps = np.concatenate([s[2] for s in streams])

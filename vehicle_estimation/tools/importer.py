@@ -827,7 +827,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = import_logs(args.mapping, Path(args.out), base_dir=args.data_dir, vehicle=args.vehicle,
                              max_rows=args.rows)
-    except (MappingError, FileExistsError) as exc:
+    except (MappingError, FileExistsError, ValueError) as exc:
         print(f"import failed: {exc}", file=sys.stderr)
         return 2
     for note in result.notes:

@@ -294,6 +294,9 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     if out is not None:
         if out.exists():
             raise ReplayError(f"output bag {out} exists already")
+        if out.suffix == ".bag":
+            raise ReplayError(f"output bag {out}: a rosbag2 directory must not end in '.bag' (it would be "
+                              f"read as a ROS 1 bag file); name it e.g. {out.with_suffix('')}")
         writer = Writer(out, version=8, storage_plugin=StoragePlugin.MCAP)
         writer.open()
     rclpy.init(args=["--ros-args", "-p", "use_sim_time:=false"])
