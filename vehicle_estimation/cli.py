@@ -32,6 +32,7 @@ all; the children also die with the launcher if it is killed (no orphans).
 from __future__ import annotations
 
 import argparse
+import importlib
 import shutil
 import signal
 import sys
@@ -245,7 +246,6 @@ def build_parser() -> argparse.ArgumentParser:
     from vehicle_estimation.tools.bench import add_arguments as bench_arguments
     bench_arguments(p)
 
-    import importlib
     for command, (module, help_text) in TOOL_COMMANDS.items():
         p = sub.add_parser(command, help=help_text)
         importlib.import_module(f"vehicle_estimation.tools.{module}").add_arguments(p)
@@ -266,7 +266,6 @@ def main(argv: list[str] | None = None) -> int:
     commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
                 "experiment": cmd_experiment, "stanford": cmd_stanford, "bench": cmd_bench}
     if args.command in TOOL_COMMANDS:
-        import importlib
         return importlib.import_module(f"vehicle_estimation.tools.{TOOL_COMMANDS[args.command][0]}").main(args)
     return commands[args.command](args)
 

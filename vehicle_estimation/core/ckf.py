@@ -317,10 +317,7 @@ class VehicleStateCKF:
                 self._ckf._x[:] = np.nan   # handled as a numerical failure below
         self.t = t
         if not np.all(np.isfinite(z)):
-            if not self._valid_moments():
-                self.reset(None)
-                self.reinitialisations += 1
-                self.last_event = "re-initialised after numerical failure"
+            if self._reinitialised_after_failure():
                 return False
             self.rejected["nonfinite_measurement"] += 1
             self.last_event = "non-finite measurement"
@@ -331,12 +328,18 @@ class VehicleStateCKF:
                     self._ckf.update(z, inputs)
             except np.linalg.LinAlgError:
                 self._ckf._x[:] = np.nan   # handled as a numerical failure below
-        if not self._valid_moments():
-            self.reset(None)
-            self.reinitialisations += 1
-            self.last_event = "re-initialised after numerical failure"
+        if self._reinitialised_after_failure():
             return False
         self.updates += 1
+        return True
+
+    def _reinitialised_after_failure(self) -> bool:
+        """Re-initialise (and count it) if the moments are no longer valid; True if it did."""
+        if self._valid_moments():
+            return False
+        self.reset(None)
+        self.reinitialisations += 1
+        self.last_event = "re-initialised after numerical failure"
         return True
 
     def _valid_moments(self) -> bool:

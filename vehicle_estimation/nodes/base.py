@@ -409,8 +409,7 @@ class EstimatorNode(Node):
                 values[field.name] = self.declare_int(name, value, doc)
             elif isinstance(value, float):
                 # A NaN default means "automatic" (validate() checks the rest).
-                values[field.name] = type(value)(self.declare_float(
-                    name, float(value), doc, allow_nan=isinstance(value, float) and math.isnan(value)))
+                values[field.name] = self.declare_float(name, value, doc, allow_nan=math.isnan(value))
             elif isinstance(value, str):
                 values[field.name] = self.declare_str(name, value, doc)
             elif isinstance(value, (tuple, list)) and all(

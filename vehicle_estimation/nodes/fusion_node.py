@@ -25,8 +25,7 @@ from vehicle_estimation.core.geodesy import LocalTangentPlane
 from vehicle_estimation.core.rotations import rotmat_to_quat
 from vehicle_estimation.nodes.base import (
     STAMP_TOLERANCE_S, EstimatorNode, companion, finite, run_node, sec_to_stamp)
-# Physical plausibility limits for raw inputs (beyond these a value is a fault, not a reading).
-from vehicle_estimation.nodes.conversions import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE, MAX_SPEED
+from vehicle_estimation.nodes.conversions import MAX_SPEED, imu_arrays, imu_plausible
 
 FUSION_GRADE = topics.FUSION_GRADE
 
@@ -65,12 +64,11 @@ class FusionNode(EstimatorNode):
 
     # -------------------------------------------------------------- inputs
     def on_imu(self, t: float, msg: Imu) -> None:
-        f = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
-        w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+        f, w = imu_arrays(msg)
         if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
             self.reject("imu:non_finite")
             return
-        if np.max(np.abs(f)) > MAX_SPECIFIC_FORCE or np.max(np.abs(w)) > MAX_ANGULAR_RATE:
+        if not imu_plausible(f, w):
             self.reject("imu:implausible")
             return
         self._last_angular_rate = w

@@ -313,10 +313,9 @@ class MassNode(EstimatorNode):
             # Algorithm 1 steps at every sample (0.01 s); the core averages its network
             # features over blocks itself, and gaps restart its speed state.
             if speed is not None and (slope_ok or not self.require_slope):
-                brake = self.brake_torque if t - self.brake_t <= STALE_AFTER_S else 0.0
                 self.core.step(t, speed, math.nan, slope_item.value if slope_ok else 0.0,
                                drive_force=pt.drive_force, engine_torque=pt.engine_torque,
-                               engine_speed=pt.engine_speed, gear=pt.gear, brake_torque=brake)
+                               engine_speed=pt.engine_speed, gear=pt.gear, brake_torque=self._brake_at(t))
             self._publish_and_persist(t)
             return
         window = self.window
@@ -325,7 +324,7 @@ class MassNode(EstimatorNode):
             if item is not None and t - item[0] <= STALE_AFTER_S:
                 window.add_state_speed(*item)
         if speed is not None:
-            brake = self.brake_torque if t - self.brake_t <= STALE_AFTER_S else 0.0
+            brake = self._brake_at(t)
             window.add(t, brake, pt.gear, vx=speed, slope=slope_item.value if slope_ok else 0.0,
                        drive_force=pt.drive_force, engine_torque=pt.engine_torque,
                        engine_speed=pt.engine_speed, engine_load=pt.engine_load)
@@ -383,6 +382,10 @@ class MassNode(EstimatorNode):
             return math.nan
         self.set_missing("IMU bias (estimation/imu_bias)", False)
         return window.accel - self.vehicle.gravity * math.sin(slope)
+
+    def _brake_at(self, t: float) -> float:
+        """Total brake torque [N m] of the latest joint_states, 0 when it is stale."""
+        return self.brake_torque if t - self.brake_t <= STALE_AFTER_S else 0.0
 
     def _speed_at(self, t: float) -> float | None:
         if self.speed_source == "wheel_speed":

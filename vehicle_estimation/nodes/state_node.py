@@ -131,10 +131,14 @@ class StateNode(EstimatorNode):
         self._z_sum = np.zeros(3)
         self._z_count = 0
         self._last_step_t = -math.inf
-        self.missing_slope_std = math.radians(self.declare_float(
+        missing_slope_std = math.radians(self.declare_float(
             "missing_slope_std_deg", 2.0,
             "Without a slope estimate the filter assumes a level road and adds the acceleration "
             "error of a grade of this std to the vx process noise [deg]", 0.0, 30.0))
+        # Without the slope the grade's g sin(theta) is an unknown, correlated acceleration
+        # error on vx: its white-noise equivalent density 2 sigma^2 tau [(m/s^2)^2 s].
+        self.missing_slope_noise_density = (
+            2.0 * (self.vehicle.gravity * math.sin(missing_slope_std)) ** 2 * GRADE_CORRELATION_S)
         self.min_dynamic_speed = self.declare_float(
             "sideslip_min_speed", 3.0,
             "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
@@ -247,12 +251,9 @@ class StateNode(EstimatorNode):
             steer = 0.0
         self._steer = steer
         slope = self._upstream(self.slope, t, math.nan, "road slope")
-        # Without the slope the filter assumes a level road, and the grade's g sin(theta) is an
-        # unknown, correlated acceleration error on vx: add it as process noise (white-noise
-        # equivalent 2 sigma^2 tau), so the variance says the estimate knows less.
-        self.core.extra_vx_noise_density = (
-            2.0 * (self.vehicle.gravity * math.sin(self.missing_slope_std)) ** 2 * GRADE_CORRELATION_S
-            if math.isnan(slope) else 0.0)
+        # Without the slope the filter assumes a level road and adds the grade's acceleration
+        # error as process noise, so the variance says the estimate knows less.
+        self.core.extra_vx_noise_density = self.missing_slope_noise_density if math.isnan(slope) else 0.0
         inputs = VehicleInputs(
             steer_angle=steer,
             wheel_speeds=wheels,
