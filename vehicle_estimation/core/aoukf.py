@@ -67,6 +67,7 @@ from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import numpy as np
 
+from vehicle_estimation.core.ckf import valid_moments
 from vehicle_estimation.core.vehicle_model import VehicleInputs
 from vehicle_estimation.vehicle import VehicleParams
 
@@ -746,6 +747,8 @@ class VehicleStateAOUKF:
             self.rejected["nonfinite_measurement"] += 1
             self.last_event = "non-finite measurement"
         if select.size == 0:
+            if self._reinitialised_after_failure(inputs):
+                return False
             self._after_update(x_prior, t)
             return False
         with np.errstate(all="ignore"):
@@ -753,14 +756,23 @@ class VehicleStateAOUKF:
                 result = self._filter.update(obs[select], model, delta, select=select)
             except np.linalg.LinAlgError:
                 result = None
-        if result is None or not (np.all(np.isfinite(self._filter._x)) and np.all(np.isfinite(self._filter._P))):
-            self.reset(self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None)
-            self.reinitialisations += 1
-            self.last_event = "re-initialised after numerical failure"
+        if result is None:
+            self._filter._x[:] = np.nan        # handled as a numerical failure below
+        if self._reinitialised_after_failure(inputs):
             return False
         self.last_decision = result if isinstance(result, OutlierDecision) else None
         self.updates += 1
         self._after_update(x_prior, t)
+        return True
+
+    def _reinitialised_after_failure(self, inputs: VehicleInputs) -> bool:
+        """Re-initialise (and count it) when the mean is not finite or the covariance is no
+        longer positive definite (absurd inputs, rounding); True if it did."""
+        if valid_moments(self._filter._x, self._filter._P):
+            return False
+        self.reset(self._vx_from_wheels(inputs) if self.config.init_vx_from_wheel_speeds else None)
+        self.reinitialisations += 1
+        self.last_event = "re-initialised after numerical failure"
         return True
 
     def _after_update(self, x_prior: np.ndarray, t: float) -> None:

@@ -153,6 +153,19 @@ class CubatureKalmanFilter:
 
 
 # ----------------------------------------------------------------------------------------
+def valid_moments(x: np.ndarray, P: np.ndarray) -> bool:
+    """Finite mean and positive-definite covariance. Absurd inputs (the model driven at
+    thousands of m/s) can leave a finite P that rounding has made indefinite (negative
+    variances) or make a factorisation fail: a numerical failure like a NaN."""
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        return False
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
 @dataclasses.dataclass
 class VehicleStateConfig:
     """Tuning of :class:`VehicleStateCKF`; defaults are paper 004 Sec. 7.1.
@@ -343,17 +356,7 @@ class VehicleStateCKF:
         return True
 
     def _valid_moments(self) -> bool:
-        """Finite mean and positive-definite covariance. Absurd inputs (the model driven at
-        thousands of m/s) can leave a finite P that rounding has made indefinite (negative
-        variances) or make the cubature factorisation fail: a numerical failure like a NaN."""
-        x, P = self._ckf._x, self._ckf._P
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
-            return False
-        try:
-            np.linalg.cholesky(P)
-        except np.linalg.LinAlgError:
-            return False
-        return True
+        return valid_moments(self._ckf._x, self._ckf._P)
 
     def update_speed(self, vx: float, variance: float) -> bool:
         """Update with a direct measurement of the longitudinal speed ``vx`` [m/s].
