@@ -48,3 +48,37 @@ ODOM_FRAME = "odom"
 BASE_FRAME = "base_link"
 IMU_FRAME = "imu_link"
 GNSS_FRAME = "gnss_link"
+
+
+def parse_remap(text: str) -> tuple[str, str]:
+    """``FROM:=TO`` -> ``(FROM, TO)`` as written; ``ValueError`` saying what is malformed."""
+    if text.count(":=") != 1:
+        raise ValueError(f"remap {text!r} must be FROM:=TO (one ':='), e.g. /sensors/imu:=imu/data")
+    source, target = (part.strip() for part in text.split(":="))
+    for what, name in (("FROM", source), ("TO", target)):
+        if not name.strip("/") or any(c.isspace() for c in name):
+            raise ValueError(f"remap {text!r}: in FROM:=TO, {what} must be a topic name without spaces "
+                             "(e.g. /sensors/imu:=imu/data)")
+    return source, target
+
+
+def bag_to_contract(remaps, contract_topics) -> dict[str, str]:
+    """``{bag topic: contract topic}`` from ``(FROM, TO)`` remap pairs (no leading '/').
+
+    As in ROS (``-r FROM:=TO``), FROM is the name the nodes use and TO the name in the vehicle
+    stack or bag: ``imu/data:=/sensors/imu``. The reverse order names the same mapping and is
+    taken too, since one side must be a contract topic: ``/sensors/imu:=imu/data``. A pair
+    with no contract topic on either side is a ``ValueError`` that says so.
+    """
+    contract = {t.lstrip("/") for t in contract_topics}
+    out: dict[str, str] = {}
+    for source, target in remaps:
+        a, b = source.lstrip("/"), target.lstrip("/")
+        if a in contract:
+            out[b] = a
+        elif b in contract:
+            out[a] = b
+        else:
+            raise ValueError(f"remap {source}:={target}: neither side is a topic of the contract "
+                             f"({', '.join(sorted(contract))})")
+    return out

@@ -57,17 +57,24 @@ class NodeProcess:
 
 @dataclass
 class NodeGroup:
-    """The four nodes, with their params files, namespace and extra ``-p`` overrides."""
+    """The four nodes, with their params files, namespace, extra ``-p`` overrides and remappings.
+
+    ``remaps`` are ``(FROM, TO)`` pairs given to every node as ``-r FROM:=TO``, so a vehicle
+    stack's own topic names can be used without a relay.
+    """
 
     params_files: Sequence[Path]
     namespace: str = "/"
     overrides: dict[str, dict[str, str]] = field(default_factory=dict)
     log_dir: Path | None = None
+    remaps: Sequence[tuple[str, str]] = ()
     nodes: list[NodeProcess] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         for spec in PIPELINE:
             argv = [sys.executable, "-m", spec.module, "--ros-args", "-r", f"__ns:={self.namespace}"]
+            for source, target in self.remaps:
+                argv += ["-r", f"{source}:={target}"]
             for params in self.params_files:
                 argv += ["--params-file", str(params)]
             for key, value in self.overrides.get(spec.name, {}).items():

@@ -1,7 +1,10 @@
-"""Replay a rosbag2 through the nodes, losslessly and deterministically, and record the outputs.
+"""Replay a bag through the nodes, losslessly and deterministically, and record the outputs.
 
-The player reads a bag (MCAP or sqlite3, written by anyone) with ``rosbags`` and publishes
-the raw CDR of every input topic of the contract. Time advances in ticks of
+The player reads a bag (rosbag2 MCAP or sqlite3, or a ROS 1 ``.bag``, written by anyone) with
+``rosbags`` and publishes the raw CDR of every input topic of the contract; a ROS 1 bag's
+messages are converted to the ROS 2 Jazzy types of the same name first (``msgconvert``).
+``remap`` plays a bag topic under a contract name (a recorder's own names); topics that are
+neither inputs nor ground truth are ignored. Stamps may start at 0 s. Time advances in ticks of
 ``tick_s`` of bag time. For each tick the player
 
 1. publishes the bag messages logged in the tick, and ``/clock``;
@@ -13,7 +16,7 @@ the raw CDR of every input topic of the contract. Time advances in ticks of
 
 So no message is lost however slow a node is, the replay runs as fast as the slowest node
 allows, and the result does not depend on scheduling (see ``nodes.base``). Ground-truth
-topics of the input bag are copied to the output bag unchanged.
+topics of the input bag are copied to the output bag (as Jazzy CDR).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from vehicle_estimation import topics
 from vehicle_estimation.nodes import PIPELINE
 from vehicle_estimation.nodes.base import (
     ACK_TOPIC, MATCHED_PREFIX, make_executor, RX_PREFIX, SOURCES_PREFIX, SYNC_TOPIC, TX_PREFIX, replay_qos)
+from vehicle_estimation.tools.msgconvert import ros1_to_cdr
 
 #: Estimates recorded to the output bag (relative names, resolved in the node namespace).
 RECORDED_TOPICS = (
@@ -58,6 +62,16 @@ RECORDED_TOPICS = (
     (topics.MASS_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
 )
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+
+#: The type each input topic of the contract has (README, "Inputs"): a bag topic of another
+#: type would never match the nodes' subscriptions, and the start-up would only time out.
+INPUT_TYPES = {
+    topics.IMU: "sensor_msgs/msg/Imu",
+    topics.GNSS: "sensor_msgs/msg/NavSatFix",
+    topics.SPEED: "geometry_msgs/msg/TwistWithCovarianceStamped",
+    topics.JOINT_STATES: "sensor_msgs/msg/JointState",
+    topics.POWERTRAIN: "sensor_msgs/msg/JointState",
+}
 
 DEFAULT_TICK_S = 0.1
 #: Nodes acknowledge by themselves whenever their counts change after a sync; a resend is
@@ -91,6 +105,40 @@ def msg_class(type_name: str) -> Any:
 
 def _norm(topic: str) -> str:
     return topic.lstrip("/")
+
+
+def _topic_plan(connections, remap: dict[str, str], input_topics: set[str],
+                truth_topics: set[str]) -> tuple[dict[int, str], dict[int, str]]:
+    """Bag connection id -> contract topic, for the inputs to play and the truth to copy.
+
+    A remap names a bag topic (with or without '/') and the contract topic it is played as;
+    a bag topic that is neither (after remapping) is ignored.
+    """
+    in_bag = {_norm(c.topic) for c in connections}
+    for source, target in remap.items():
+        if source not in in_bag:
+            raise ReplayError(f"--remap {source}:={target}: the bag has no topic {source} "
+                              f"(it has {', '.join(sorted(in_bag))})")
+        if target not in input_topics | truth_topics:
+            raise ReplayError(f"--remap {source}:={target}: {target} is not a topic of the contract "
+                              f"(inputs: {', '.join(sorted(input_topics))}; or ground truth)")
+    play: dict[int, str] = {}
+    truth: dict[int, str] = {}
+    played_from: dict[str, str] = {}
+    for conn in connections:
+        source = _norm(conn.topic)
+        target = remap.get(source, source)
+        if target in input_topics:
+            if played_from.setdefault(target, source) != source:
+                raise ReplayError(f"bag topics {played_from[target]} and {source} would both be played as "
+                                  f"{target}; remap or drop one of them")
+            if conn.msgtype != INPUT_TYPES.get(target, conn.msgtype):
+                raise ReplayError(f"bag topic {conn.topic} (played as {target}) has type {conn.msgtype}; "
+                                  f"the contract wants {INPUT_TYPES[target]}")
+            play[conn.id] = target
+        elif target in truth_topics:
+            truth[conn.id] = target
+    return play, truth
 
 
 @dataclass
@@ -274,8 +322,13 @@ class ReplayDriver(Node):
 def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
            tick_s: float = DEFAULT_TICK_S, progress: bool = True, startup_timeout: float = 60.0,
            stall_timeout: float = 60.0,
-           tick_callback: Callable[[float], None] | None = None) -> ReplayStats:
+           tick_callback: Callable[[float], None] | None = None,
+           remap: dict[str, str] | None = None) -> ReplayStats:
     """Play ``bag`` through nodes started by ``group_factory(overrides)``; record to ``out``.
+
+    ``remap``: ``{FROM: TO}`` pairs as ``--remap FROM:=TO`` gives them, the contract topic on
+    one side and the bag's on the other (:func:`vehicle_estimation.topics.bag_to_contract`;
+    a leading '/' does not matter).
 
     ``tick_callback(bag_seconds_done)`` is called after every tick (the benchmark samples
     memory with it).
@@ -284,6 +337,10 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     typestore = get_typestore(Stores.ROS2_JAZZY)
     input_topics = {t for t in topics.INPUT_TOPICS}
     truth_topics = {t for t in topics.GROUND_TRUTH_TOPICS}
+    try:
+        remap = topics.bag_to_contract((remap or {}).items(), input_topics | truth_topics)
+    except ValueError as exc:
+        raise ReplayError(str(exc)) from None
     overrides = release_delays(tick_s)
     # A fresh state file per replay: a respawned mass node resumes from it, while a new replay
     # never inherits another run's estimate (that would break replay determinism).
@@ -307,26 +364,36 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     wall0 = time.monotonic()
     try:
         with AnyReader([bag], default_typestore=typestore) as reader:
-            play = [c for c in reader.connections if _norm(c.topic) in input_topics]
-            truth = [c for c in reader.connections if _norm(c.topic) in truth_topics]
+            play_ids, truth_ids = _topic_plan(reader.connections, remap, input_topics, truth_topics)
+            play = [c for c in reader.connections if c.id in play_ids]
+            truth = [c for c in reader.connections if c.id in truth_ids]
             if not play:
-                raise ReplayError(f"{bag}: none of the input topics {sorted(input_topics)} is in the bag")
+                raise ReplayError(f"{bag}: none of the input topics {sorted(input_topics)} is in the bag "
+                                  "(use --remap FROM:=TO for a bag with other topic names)")
             for conn in play:
-                driver.raw_publisher(_norm(conn.topic), conn.msgtype)
+                driver.raw_publisher(play_ids[conn.id], conn.msgtype)
             truth_conns = {}
             if writer is not None:
                 for conn in truth:
-                    truth_conns[conn.id] = writer.add_connection(
-                        "/" + _norm(conn.topic), conn.msgtype, typestore=typestore)
+                    topic = "/" + truth_ids[conn.id]
+                    if topic not in truth_conns:   # a ROS 1 bag may hold one connection per publisher
+                        truth_conns[topic] = writer.add_connection(topic, conn.msgtype, typestore=typestore)
+            # A ROS 1 bag holds ROS 1 serialisation: every message is converted to Jazzy CDR.
+            types = {c.id: c.msgtype for c in play + truth}
+            if reader.is2:
+                def to_cdr(conn_id: int, data: Any) -> bytes:
+                    return bytes(data)
+            else:
+                def to_cdr(conn_id: int, data: Any) -> bytes:
+                    return ros1_to_cdr(reader.deserialize(data, types[conn_id]), types[conn_id], typestore)
             t_start, t_end = reader.start_time, reader.end_time
             _handshake(driver, executor, group, t_start, startup_timeout)
             tick_ns = int(round(tick_s * 1e9))
             next_tick = t_start + tick_ns
-            play_ids = {c.id: _norm(c.topic) for c in play}
             for conn, timestamp, data in reader.messages(connections=play + truth):
                 if conn.id not in play_ids:   # ground truth: copied when recording
-                    if conn.id in truth_conns:
-                        writer.write(truth_conns[conn.id], timestamp, data)
+                    if writer is not None:
+                        writer.write(truth_conns["/" + truth_ids[conn.id]], timestamp, to_cdr(conn.id, data))
                     continue
                 while timestamp >= next_tick:
                     _tick(driver, executor, group, next_tick, stall_timeout)
@@ -337,7 +404,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                     if progress:
                         _progress(next_tick - t_start, t_end - t_start, wall0)
                 topic = play_ids[conn.id]
-                driver.publish_raw(topic, bytes(data))
+                driver.publish_raw(topic, to_cdr(conn.id, data))
                 stats.read[driver.raw_publishers[topic].topic_name] += 1
             # Flush: advance past the end by the deepest release delay plus two ticks.
             flush_end = t_end + int((len(PIPELINE) + 2) * tick_ns)
@@ -441,10 +508,21 @@ def _respawn(driver, executor, group, dead, tick_label: str, timeout: float) -> 
     driver.rebaseline()
 
 
+def handshake_ns(t_start_ns: int) -> int:
+    """Clock and sync label of the start-up handshake: 1 s before the bag, but never negative.
+
+    ROS time cannot be negative (rclpy raises on it in every node), and bags from simulators,
+    CSV exports and many loggers start at 0 s. The handshake only has to come before the first
+    tick (``t_start + tick``), which 0 does.
+    """
+    return max(t_start_ns - 10**9, 0)
+
+
 def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None:
-    label = str(t_start_ns - 10**9)
+    t_ns = handshake_ns(t_start_ns)
+    label = str(t_ns)
     _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
-                lambda: (driver.clock_pub.publish(_clock(t_start_ns - 10**9)), driver.send_sync(label, handshake=True)),
+                lambda: (driver.clock_pub.publish(_clock(t_ns)), driver.send_sync(label, handshake=True)),
                 timeout, "start-up (waiting for every node and connection)")
 
 
