@@ -53,6 +53,7 @@ from sensor_msgs.msg import Imu
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.task import Future
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -345,8 +346,12 @@ class EstimatorNode(Node):
     def declare_float_array(self, name: str, default: Sequence[float], description: str) -> list[float]:
         descriptor = ParamSpec.descriptor(description)
         descriptor.type = ParameterType.PARAMETER_DOUBLE_ARRAY
-        value = self._declare(name, [float(v) for v in default], descriptor)
-        return [float(v) for v in value]
+        # rclpy infers a parameter's type from its default, and types an empty list as a byte
+        # array, which would refuse every double array a params file gives (a calibrated
+        # torque map). Declared by type instead, it has no value until a file sets one.
+        initial: Any = [float(v) for v in default] if default else Parameter.Type.DOUBLE_ARRAY
+        value = self._declare(name, initial, descriptor)
+        return [float(v) for v in value] if value is not None else []
 
     @staticmethod
     def config_field_docs(cls: type) -> dict[str, str]:
@@ -472,7 +477,8 @@ class EstimatorNode(Node):
             except Exception:  # malformed message: no usable stamp
                 self.reject(f"{name}:bad_stamp")
                 return
-            if not math.isfinite(t) or t <= 0.0:
+            # 0 s is a valid stamp: simulators, CSV exports and many loggers start there.
+            if not math.isfinite(t) or t < 0.0:
                 self.reject(f"{name}:bad_stamp")
                 return
             # Ties on the stamp are broken by topic name, then arrival order within the topic

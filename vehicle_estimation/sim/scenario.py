@@ -69,6 +69,9 @@ class SensorConfig:
     engine_speed_noise: float = 0.0           # [rad/s]
     engine_torque_noise: float = 2.0          # [N m] (also on the drive force, scaled)
     brake_torque_noise: float = 0.0           # [N m]
+    # What the car puts on vehicle/powertrain; the rest is NaN ("not reported"). An OBD-II-only
+    # car: ("engine_speed", "engine_load").
+    powertrain_reports: tuple[str, ...] = ("engine_speed", "engine_torque", "engine_load", "gear", "drive_force")
     # paper 004 Eq. 34: variance multipliers 9, 1, 4, 0.25 over 40 s segments on IMU ax, ay, r
     eq34_noise: bool = False
     eq34_multipliers: tuple[float, ...] = (9.0, 1.0, 4.0, 0.25)

@@ -294,6 +294,15 @@ def make_sensors(scn: Scenario, cfg: SensorConfig, truth: dict, kin: dict, seeds
     transmitting = drive != 0.0
     te_m = te + np.where(transmitting | (te != 0.0), tq_noise, 0.0)
     drive_m = drive + np.where(transmitting, tq_noise * G * vp.driveline_efficiency, 0.0)
-    sensors["powertrain"] = {"t": tp, "engine_speed": we, "engine_torque": te_m,
-                             "load": truth["engine_load"][iz], "gear": gear.astype(float), "drive_force": drive_m}
+    powertrain = {"engine_speed": we, "engine_torque": te_m, "engine_load": truth["engine_load"][iz],
+                  "gear": gear.astype(float), "drive_force": drive_m}
+    unknown = set(cfg.powertrain_reports) - set(powertrain)
+    if unknown:
+        raise ValueError(f"SensorConfig.powertrain_reports: unknown signals {sorted(unknown)}")
+    for name in powertrain:
+        if name not in cfg.powertrain_reports:
+            powertrain[name] = np.full(tp.size, np.nan)
+    sensors["powertrain"] = {"t": tp, "engine_speed": powertrain["engine_speed"],
+                             "engine_torque": powertrain["engine_torque"], "load": powertrain["engine_load"],
+                             "gear": powertrain["gear"], "drive_force": powertrain["drive_force"]}
     return sensors

@@ -29,7 +29,7 @@ VARIANTS: tuple[tuple[str, str, str | None, tuple[str, ...]], ...] = (
     ("fusion", "vehicle_estimation.nodes.fusion_node:FusionNode", None, ()),
     ("vehicle_state", "vehicle_estimation.nodes.state_node:StateNode", "filter", ("vbackf", "ckf", "aoukf")),
     ("road_slope", "vehicle_estimation.nodes.slope_node:SlopeNode", "method",
-     ("cubic_prediction", "classical", "fusion_pitch")),
+     ("auto", "cubic_prediction", "classical", "fusion_pitch")),
     ("mass", "vehicle_estimation.nodes.mass_node:MassNode", "method", ("ffrls", "rls", "ta_aekf")),
 )
 #: Declared by rclpy itself, not by us.
@@ -80,6 +80,7 @@ def _load(path: str) -> Any:
 
 def collect() -> dict[str, dict[str, ParamRow]]:
     """``{node: {parameter: row}}`` from starting every node variant (rclpy must be initialised)."""
+    from rclpy.exceptions import ParameterUninitializedException
     from rclpy.parameter import Parameter
 
     out: dict[str, dict[str, ParamRow]] = {}
@@ -92,7 +93,10 @@ def collect() -> dict[str, dict[str, ParamRow]]:
             try:
                 names = sorted(n for n in node._parameters if n not in IGNORED)
                 for name, descriptor in zip(names, node.describe_parameters(names)):
-                    default = node.get_parameter(name).value
+                    try:
+                        default = node.get_parameter(name).value
+                    except ParameterUninitializedException:
+                        default = []    # an array declared by type: empty until a file sets it
                     if selector is not None and name == selector:
                         default = values[0]     # the node's own default comes first in VARIANTS
                     row = rows.get(name)
