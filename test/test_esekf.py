@@ -428,3 +428,44 @@ def test_rotation_helpers_round_trip():
         np.testing.assert_allclose(euler_from_quat(quat_from_euler(r, p, y)), (r, p, y), atol=1e-9)
     # REP-103: positive pitch tips the nose (body x) down
     assert quat_to_rotmat(quat_from_euler(0.0, 0.1, 0.0))[2, 0] < 0
+
+
+def test_without_gnss_the_filter_navigates_with_a_free_heading():
+    """No GNSS at all: the filter aligns at the standstill and then navigates, heading free.
+
+    Speed and grade need no heading, so they are as good as with GNSS; the yaw is relative to
+    the heading at alignment (taken as 0), so the ENU heading is off by the true initial one,
+    and the track is the true one rotated by it: its shape (distances) is dead-reckoned."""
+    sim = simulate(seed=3)
+    no_gnss = dict(sim, gnss_t=np.zeros(0), gnss=np.zeros((0, 3)))
+    ekf = FusionEKF()
+    vx, grade, yaw, pos, pos_var, t_nav = [], [], [], [], [], []
+    js = 0
+    for i, t in enumerate(no_gnss["t"]):
+        ekf.process_imu(t, no_gnss["imu_f"][i], no_gnss["imu_w"][i])
+        while js < len(no_gnss["speed_t"]) and no_gnss["speed_t"][js] <= t:
+            ekf.update_speed(no_gnss["speed_t"][js], no_gnss["speed"][js])
+            js += 1
+        if ekf.navigating:
+            t_nav.append(i)
+            vx.append(ekf.velocity_body[0])
+            grade.append(ekf.road_grade)
+            yaw.append(ekf.yaw)
+            pos.append(ekf.position_enu)
+            pos_var.append(np.trace(ekf.position_covariance[:2, :2]))
+    assert not ekf.initialized and ekf.navigating and ekf.status == "waiting_for_heading"
+    k = np.array(t_nav)
+    assert sim["t"][k[0]] < 10.0                      # aligned at the standstill
+    later = sim["t"][k] > 30.0
+    assert _rms(np.array(vx)[later] - sim["v"][k][later]) < 0.1
+    assert math.degrees(_rms(np.array(grade)[later] - sim["grade"][k][later])) < 1.0
+    heading_offset = np.unwrap(sim["yaw"][k] - np.array(yaw))
+    assert abs(heading_offset[-1] - YAW0) < math.radians(5.0)   # free heading: relative to the start
+    # the track, rotated by the true initial heading, is the true track within a few % of the
+    # distance travelled, and the position covariance grows with it
+    rot = np.array([[math.cos(YAW0), -math.sin(YAW0)], [math.sin(YAW0), math.cos(YAW0)]])
+    est = (np.array(pos)[:, :2] - np.array(pos)[0, :2]) @ rot.T
+    true = sim["pos"][k][:, :2] - sim["pos"][k][0, :2]
+    travelled = float(np.sum(np.linalg.norm(np.diff(true, axis=0), axis=1)))
+    assert np.linalg.norm(est[-1] - true[-1]) < 0.05 * travelled
+    assert pos_var[-1] > 10.0 * pos_var[0]

@@ -17,7 +17,8 @@ estimation of vehicle mass ...", MSSP 171, 108925), Sec. 5 and Alg. 1:
   variances greatly reduced when CAN speed says the vehicle stands still).
 * Sec. 7.1 initialisation: roll/pitch from the averaged accelerometer at standstill,
   gyro bias = mean of ``init_stationary_samples`` (200) stationary gyro samples,
-  accelerometer bias zero, yaw from GNSS motion once the vehicle moves.
+  accelerometer bias zero, yaw from GNSS motion once the vehicle moves. Until then (for
+  ever without GNSS) the filter navigates with a free heading (:attr:`FusionEKF.navigating`).
 
 Beyond the paper: IMU mounting states.  The paper's IMU was calibrated to the body; a
 car's IMU sits in ``imu_link``, rotated from ``base_link`` by a mounting rotation known
@@ -304,7 +305,21 @@ class FusionEKF:
 
     @property
     def initialized(self) -> bool:
+        """Aligned and the heading fixed by GNSS motion: the pose is in ENU."""
         return self.status == STATUS_RUNNING
+
+    @property
+    def navigating(self) -> bool:
+        """Aligned: attitude, velocity, biases and grade are estimated.
+
+        Until GNSS fixes the heading (never, on a car without GNSS) the filter runs with a free
+        heading: its yaw and position are relative to the pose at alignment (the heading taken
+        as zero, the position as the latest fix or the origin), dead-reckoned with the CAN speed
+        and the vehicle constraints, and the position covariance grows with the distance. Roll,
+        pitch, the grade, the body velocity and the biases do not depend on the heading, so
+        they are as good as with GNSS.
+        """
+        return self.status in (STATUS_WAIT_HEADING, STATUS_RUNNING)
 
     @property
     def time(self) -> float | None:

@@ -7,7 +7,10 @@ Publishes: ``estimation/odometry`` (pose in ENU ``odom``, twist in ``base_link``
 +uphill], y = variance, z = converged).
 
 The ENU origin of ``odom`` is the first valid GNSS fix; fixes with ``status.status < 0`` are
-ignored and counted.
+ignored and counted. Without GNSS (a car that has none, or before the first fixes show the
+heading) every output is still published once the filter has aligned: ``odom`` is then the
+pose at alignment with a free heading, the position is dead-reckoned and its covariance grows,
+and ``/diagnostics`` says so (``heading source``, ``position source`` and a ``missing`` entry).
 """
 
 from __future__ import annotations
@@ -28,6 +31,8 @@ from vehicle_estimation.nodes.base import (
 from vehicle_estimation.nodes.conversions import MAX_SPEED, imu_arrays, imu_plausible
 
 FUSION_GRADE = topics.FUSION_GRADE
+FREE_HEADING = ("gnss/fix: no heading from GNSS yet, so free heading: odom = the pose at alignment, "
+                "position dead-reckoned")
 
 
 class FusionNode(EstimatorNode):
@@ -75,10 +80,12 @@ class FusionNode(EstimatorNode):
         if not self.ekf.process_imu(t, f, w):
             self.reject("imu:out_of_order")
             return
-        if not self.ekf.initialized:
+        if not self.ekf.navigating:
             self.set_missing("initialisation: " + self.ekf.status, True)
             return
         self._missing = {m for m in self._missing if not m.startswith("initialisation")}
+        # The fallback without GNSS, named in /diagnostics: outputs go on, the pose is relative.
+        self.set_missing(FREE_HEADING, not self.ekf.initialized)
         if t - self._last_imu_pub_t >= 1.0 / self.imu_rate - STAMP_TOLERANCE_S:
             self._last_imu_pub_t = t
             self.publish_imu(t, msg, f, w)
@@ -199,8 +206,10 @@ class FusionNode(EstimatorNode):
 
     def status_values(self) -> dict[str, str]:
         ekf = self.ekf
-        values = {"filter status": ekf.status, "initialized": str(ekf.initialized)}
-        if ekf.initialized:
+        values = {"filter status": ekf.status, "initialized": str(ekf.initialized),
+                  "heading source": "GNSS motion" if ekf.initialized else "free (no GNSS heading yet)",
+                  "position source": "GNSS" if self.origin is not None else "dead reckoning (no GNSS fix)"}
+        if ekf.navigating:
             values.update({
                 "road grade [deg]": f"{math.degrees(ekf.road_grade):.3f}",
                 "accel bias [m/s^2]": np.array2string(ekf.accel_bias, precision=4),

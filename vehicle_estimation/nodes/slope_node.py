@@ -2,9 +2,14 @@
 
 Methods (parameter ``method``):
 
+* ``auto`` (default): ``fusion_pitch`` while the fusion grade is fresh and converged, else
+  ``cubic_prediction``; both run all the time, so the observer is converged when the fusion
+  grade drops out (no GNSS, fusion not aligned, upstream missing), and a switch fades the
+  difference out instead of jumping (:mod:`vehicle_estimation.core.slope_auto`).
+  ``/diagnostics`` names the source in use.
 * ``fusion_pitch``: the grade of paper 003 Sec. 7.2, i.e. the pitch of the fusion
   node's error-state EKF (``estimation/fusion/road_grade``), smoothed as paper 003 Sec. 7.1 does.
-* ``cubic_prediction`` (default): paper 004 Sec. 5, the slope prediction model (Eqs. 15-20: the slope
+* ``cubic_prediction``: paper 004 Sec. 5, the slope prediction model (Eqs. 15-20: the slope
   rate from a fit of recent slopes over travelled distance) with the cubic observer
   (Eqs. 21-27), on the bias-compensated longitudinal specific force and the vehicle speed.
 * ``classical``: the contrast of paper 004 Eqs. 32-33 (θ̇ = 0 slope model).
@@ -30,13 +35,14 @@ from std_msgs.msg import Float64
 
 from vehicle_estimation import topics
 from vehicle_estimation.core import slope as slope_core
+from vehicle_estimation.core.slope_auto import SOURCE_FUSION, AutoSlope, AutoSlopeConfig
 from vehicle_estimation.nodes.base import (
     STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion,
     companion_value, run_node)
 from vehicle_estimation.nodes.conversions import (
     MAX_SPEED, forward_speed_entry, imu_arrays, imu_plausible, planar_velocity_entry)
 
-METHODS = tuple(slope_core.SLOPE_METHODS)
+METHODS = ("auto", *slope_core.SLOPE_METHODS)
 CONFIGS = {"classical": slope_core.ClassicalSlopeConfig,
            "cubic_prediction": slope_core.CubicPredictionSlopeConfig,
            "fusion_pitch": slope_core.PitchGradeConfig}
@@ -80,9 +86,24 @@ class SlopeNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("road_slope", **node_kwargs)
         self.vehicle = self.declare_vehicle()
-        self.method = self.declare_str("method", "cubic_prediction", "Slope method", METHODS)
+        self.method = self.declare_str(
+            "method", "auto",
+            "Slope method; auto: the fusion grade while it is fresh and converged, else the "
+            "cubic_prediction observer on the IMU and a speed", METHODS)
         self.rate = self.declare_float("publish_rate_hz", 50.0, "Output rate [Hz]", 0.1, 1000.0)
-        self.core = self._make_core()
+        # The cores this method steps: the fusion grade, the IMU + speed observer, or both.
+        self.uses_grade = self.method in ("auto", "fusion_pitch")
+        self.uses_observer = self.method != "fusion_pitch"
+        self.observer_method = "cubic_prediction" if self.method == "auto" else self.method
+        self.configs = {}
+        if self.uses_grade:
+            self.configs["fusion_pitch"] = self.declare_config("fusion_pitch", CONFIGS["fusion_pitch"]())
+        if self.uses_observer:
+            self.configs[self.observer_method] = self.declare_config(
+                self.observer_method, CONFIGS[self.observer_method]())
+        if self.method == "auto":
+            self.auto_config = self.declare_config("auto", AutoSlopeConfig())
+        self._make_cores()
         self.squat = SuspensionPitch(self.vehicle.pitch_gain, self.vehicle.pitch_time_constant)
         self.bias = FusionImuBias()
         self.grade = UpstreamHistory()
@@ -95,20 +116,26 @@ class SlopeNode(EstimatorNode):
         self.pub_stamped = self.publisher(Vector3Stamped, topics.ROAD_SLOPE_STAMPED)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         # Subscribe only to what the method uses: every subscription costs CPU at 100-200 Hz.
-        if self.method == "fusion_pitch":
+        if self.uses_grade:
             self.subscribe_upstream(Vector3Stamped, topics.FUSION_GRADE, self.grade, companion_value)
-        else:
+        if self.uses_observer:
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
             self.subscribe_imu_bias(self.bias)
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
                                     planar_velocity_entry)
             self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
 
-    def _make_core(self):
-        if not hasattr(self, "config"):
-            self.config = self.declare_config(self.method, CONFIGS[self.method]())
+    def _make_cores(self) -> None:
+        """``self.core`` is what is published: the one core, or the auto selection of two."""
         try:
-            return slope_core.SLOPE_METHODS[self.method](self.config)
+            self.grade_core = (slope_core.PitchGradeSlope(self.configs["fusion_pitch"])
+                               if self.uses_grade else None)
+            self.observer = (slope_core.SLOPE_METHODS[self.observer_method](self.configs[self.observer_method])
+                             if self.uses_observer else None)
+            if self.method == "auto":
+                self.core = AutoSlope(self.grade_core, self.observer, self.auto_config)
+            else:
+                self.core = self.grade_core if self.grade_core is not None else self.observer
         except ValueError as exc:
             raise ParameterError(f"method '{self.method}': {exc}") from exc
 
@@ -139,15 +166,18 @@ class SlopeNode(EstimatorNode):
         if not imu_plausible(f, w):
             self.reject("imu:implausible")
             return
-        if self.method == "fusion_pitch":
+        grade_usable = False
+        if self.grade_core is not None:
             item = self.grade.at(t)
             missing = item is None or t - item.stamp > STALE_AFTER_S
-            self.set_missing("fusion road grade", missing)
+            # With auto the observer takes over: a fallback, not a missing input.
+            self.set_missing("fusion road grade", missing and self.method == "fusion_pitch")
             if not missing:
                 grade = item.value - self.squat.update(t, float(f[0]) - self.vehicle.gravity * math.sin(item.value))
-                if not self.core.step(t, grade, item.variance):
+                if not self.grade_core.step(t, grade, item.variance):
                     self.reject("slope:rejected_by_core")
-        else:
+                grade_usable = item.converged and self.grade_core.converged
+        if self.observer is not None:
             f, w = self.bias.correct(t, f, w)
             velocity = self.velocity_at(t)
             self.set_missing("vehicle speed", velocity is None)
@@ -155,11 +185,15 @@ class SlopeNode(EstimatorNode):
             # pitch on its suspension tilts the accelerometer too: take it out, as for the
             # fusion grade, so that theta is the road's.
             ax = float(f[0])
-            squat = self.squat.update(t, ax - self.vehicle.gravity * math.sin(self.core.slope))
+            squat = self.squat.update(t, ax - self.vehicle.gravity * math.sin(self.observer.slope))
             ax -= self.vehicle.gravity * math.sin(squat)
-            if velocity is not None and not self.core.step(t, ax, velocity[0],
-                                                           yaw_rate=float(w[2]), vy=velocity[1]):
+            if velocity is not None and not self.observer.step(t, ax, velocity[0],
+                                                               yaw_rate=float(w[2]), vy=velocity[1]):
                 self.reject("slope:rejected_by_core")
+        if isinstance(self.core, AutoSlope):
+            # Without the fusion's bias estimate the accelerometer bias goes into the slope.
+            bias_std = 0.0 if self.bias.valid else self.auto_config.uncompensated_accel_bias_std
+            self.core.update(t, grade_usable, (bias_std / self.vehicle.gravity) ** 2)
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
@@ -175,7 +209,7 @@ class SlopeNode(EstimatorNode):
         self.publish(self.pub, Float64(data=float(slope)))
 
     def reset_estimators(self) -> None:
-        self.core = self._make_core()
+        self._make_cores()
         self.squat.reset()
         self.bias.clear()
         for history in (self.grade, self.state_speed, self.odom_speed):
@@ -184,8 +218,16 @@ class SlopeNode(EstimatorNode):
         self._last_pub = -math.inf
 
     def status_values(self) -> dict[str, str]:
-        return {"method": self.method, "slope [deg]": f"{math.degrees(self.core.slope):.3f}",
-                "converged": str(self.core.converged), "imu bias from fusion": str(self.bias.valid)}
+        values = {"method": self.method, "slope [deg]": f"{math.degrees(self.core.slope):.3f}",
+                  "converged": str(self.core.converged)}
+        if self.observer is not None:
+            values["imu bias from fusion"] = str(self.bias.valid)
+        if isinstance(self.core, AutoSlope):
+            values["slope source"] = (
+                "fusion_pitch (fusion grade)" if self.core.source == SOURCE_FUSION
+                else "cubic_prediction (IMU + speed observer: fusion grade missing or not converged)")
+            values["slope source switches"] = str(self.core.switches)
+        return values
 
 
 

@@ -60,6 +60,11 @@ from vehicle_estimation.nodes.conversions import (
 
 FILTERS = ("ckf", "vbackf", "aoukf")
 STALE_AFTER_S = 1.0
+#: Where vx comes from, for /diagnostics ("vx source").
+VX_FROM_WHEELS = "wheel speeds"
+VX_FROM_SPEED = "vehicle/speed (fallback: no wheel speeds)"
+VX_DEAD_RECKONED = "dead reckoning from ax (no wheel speeds, no vehicle/speed): drifts"
+
 #: How long the filter waits for wheel speeds to start from before it starts from initial_vx [s].
 WHEEL_WAIT_S = 1.0
 #: A road grade varies over a hill's length: at highway speed ~5 s. The correlation time of the
@@ -149,6 +154,7 @@ class StateNode(EstimatorNode):
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
         self.speed: tuple[float, float, float] | None = None     # (stamp, vx, variance), unused yet
+        self.vx_source = VX_FROM_WHEELS if self.speed_fallback else "wheel speeds, else dead reckoning from ax"
         if self.speed_fallback:
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         self.subscribe_imu_bias(self.bias)
@@ -214,15 +220,14 @@ class StateNode(EstimatorNode):
 
     def _update_speed_fallback(self, t: float, wheels: np.ndarray) -> None:
         """vx from vehicle/speed when the wheel speeds are missing (each sample used once)."""
-        if np.all(np.isfinite(wheels[2:])) or self.speed is None:
+        if np.all(np.isfinite(wheels[2:])):
+            self.vx_source = VX_FROM_WHEELS
             self.set_missing("wheel speeds and vehicle/speed", False)
             return
-        stamp, v, var = self.speed
-        if t - stamp > self.stale_input_s:
-            self.set_missing("wheel speeds and vehicle/speed", True)
-            return
-        self.set_missing("wheel speeds and vehicle/speed", False)
-        if self.core.update_speed(v, var):
+        fresh = self.speed is not None and t - self.speed[0] <= self.stale_input_s
+        self.vx_source = VX_FROM_SPEED if fresh else VX_DEAD_RECKONED
+        self.set_missing("wheel speeds and vehicle/speed", self.speed is not None and not fresh)
+        if fresh and self.core.update_speed(self.speed[1], self.speed[2]):
             self.speed = None
 
     def _upstream(self, history: UpstreamHistory, t: float, default: float, what: str) -> float:
@@ -345,6 +350,7 @@ class StateNode(EstimatorNode):
             extra = {f"aoukf {k}": str(v) for k, v in self.core.counters.items()}
             extra["GA-BPNN correction"] = "on" if self.core.correction is not None else "off"
         extra["filter re-initialisations"] = str(self.core.reinitialisations)
+        extra["vx source"] = self.vx_source
         return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 
