@@ -4,9 +4,12 @@ Subcommands::
 
     vehicle-estimation demo [--out DIR]                 simulate a drive, replay it, report
     vehicle-estimation simulate --scenario NAME --out BAG
-    vehicle-estimation run [--vehicle FILE] [--params FILE ...] [--namespace NS]
-    vehicle-estimation replay BAG --record OUT [--vehicle FILE] [--params FILE]
+    vehicle-estimation run [--vehicle FILE] [--params FILE ...] [--namespace NS] [--remap FROM:=TO ...]
+    vehicle-estimation replay BAG --record OUT [--vehicle FILE] [--params FILE] [--remap FROM:=TO ...]
+                                                        BAG: MCAP/sqlite3 rosbag2 or ROS 1 .bag
     vehicle-estimation report BAG [--out DIR]
+    vehicle-estimation inspect BAG [--vehicle V] [--params P ...] [--remap FROM:=TO ...] [--json]
+                                                        topics of a bag and what each node will do
     vehicle-estimation experiment paper004 [--out DIR]   contrast experiment of paper 004
     vehicle-estimation import MAPPING --out BAG [--data-dir DIR] [--rows N]
                                                         column logs (CSV/text) -> contract bag
@@ -42,10 +45,25 @@ from pathlib import Path
 from vehicle_estimation.paths import params_file
 
 
-def _node_group(args: argparse.Namespace, overrides=None, log_dir: Path | None = None):
+def _node_group(args: argparse.Namespace, overrides=None, log_dir: Path | None = None, remaps=()):
     from vehicle_estimation.tools.processes import NodeGroup
     files = [params_file(args.vehicle)] + [params_file(name) for name in (args.params or ["estimation"])]
-    return NodeGroup(files, namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir)
+    return NodeGroup(files, namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir,
+                     remaps=list(remaps))
+
+
+def _remap_arg(text: str) -> tuple[str, str]:
+    """argparse type of ``--remap FROM:=TO``: a malformed one is a usage error that says why."""
+    from vehicle_estimation.topics import parse_remap
+    try:
+        return parse_remap(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _add_remap_option(p: argparse.ArgumentParser, help_text: str) -> None:
+    p.add_argument("--remap", action="append", type=_remap_arg, default=[], metavar="FROM:=TO",
+                   help=help_text + "; repeat for more topics")
 
 
 def _add_node_options(p: argparse.ArgumentParser) -> None:
@@ -68,7 +86,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         # One state file per namespace: two vehicles on one computer never share an estimate.
         ns = args.namespace.strip("/").replace("/", "_") or "root"
         overrides["mass"] = {"persist.path": str(Path(args.state_dir) / f"mass_{ns}.json")}
-    group = _node_group(args, overrides)
+    group = _node_group(args, overrides, remaps=args.remap)
     stopping = {"flag": False}
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -98,14 +116,23 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools.inspect_bag import InspectError, format_summary, summarize
     from vehicle_estimation.tools.replay import ReplayError, print_stats, replay
+    # What `inspect` says of this bag with these params: the sources and fallbacks each node
+    # will use, and what will stay empty, before minutes of replay.
+    files = [params_file(args.vehicle)] + [params_file(name) for name in (args.params or ["estimation"])]
+    try:
+        print(format_summary(summarize(Path(args.bag), files, dict(args.remap))), file=sys.stderr)
+    except (InspectError, OSError, ValueError) as exc:
+        print(f"replay: cannot inspect {args.bag} ({exc}); replaying anyway", file=sys.stderr)
     record = Path(args.record) if args.record else None
     log_dir = Path(args.log_dir) if args.log_dir else None
     if log_dir:
         log_dir.mkdir(parents=True, exist_ok=True)
     try:
         stats = replay(Path(args.bag), record, lambda ov: _node_group(args, ov, log_dir),
-                       namespace=args.namespace, tick_s=args.tick, progress=not args.quiet)
+                       namespace=args.namespace, tick_s=args.tick, progress=not args.quiet,
+                       remap=dict(args.remap))
     except ReplayError as exc:
         print(f"replay failed: {exc}", file=sys.stderr)
         return 1
@@ -187,6 +214,7 @@ def cmd_stanford(args: argparse.Namespace) -> int:
 TOOL_COMMANDS = {
     "paper000": ("paper000", "paper 000: TA-AEKF vs EKF, MLP, LSTM and transformer (Tables 2-4, 6)"),
     "paper002": ("paper002", "paper 002: EKF, UKF, anti-outlier UKF (+ GA-BPNN) on outliers (Table 2)"),
+    "inspect": ("inspect_bag", "what a bag holds and what each node will make of it (before a replay)"),
     "calibrate": ("calibrate", "learn gear ratios, torque map, CdA, Cr, inertias from one drive of known mass"),
     "campaign": ("campaign", "calibration plus paper 003's drive campaign (loads, tyres, windows, wind)"),
     "truck-data": ("truck_data", "simulate the paper-000 truck drives the mass networks train on"),
@@ -214,13 +242,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where the mass node persists its estimate, so that a restart resumes it "
                         "(default: $ROS_HOME/vehicle_estimation, else ~/.ros/vehicle_estimation); "
                         "'' turns persistence off")
+    _add_remap_option(p, "ROS remapping given to every node as -r FROM:=TO (e.g. imu/data:=/sensors/imu)")
 
     p = sub.add_parser("replay", help="play a bag through every node and record the estimates")
-    p.add_argument("bag")
+    p.add_argument("bag", help="rosbag2 directory (MCAP or sqlite3) or ROS 1 .bag file; stamps may start at 0 s")
     p.add_argument("--record", required=True, help="output bag directory (MCAP)")
     p.add_argument("--tick", type=float, default=0.1, help="replay tick of bag time [s]")
     p.add_argument("--log-dir", default=None, help="write each node's log here")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_remap_option(p, "play a bag topic as a contract topic, ROS-style CONTRACT:=BAG_TOPIC (e.g. "
+                      "imu/data:=/sensors/imu; the reverse order is taken too)")
     _add_node_options(p)
 
     p = sub.add_parser("experiment", help="contrast experiment of a paper: one drive, two strategies")

@@ -1,0 +1,248 @@
+"""`vehicle-estimation inspect BAG`: topics of a bag and what each node will make of it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from vehicle_estimation import topics
+from vehicle_estimation.paths import params_file
+from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
+from vehicle_estimation.tools import inspect_bag
+from vehicle_estimation.tools.inspect_bag import format_summary, summarize
+
+ROOT = Path(__file__).resolve().parent.parent
+TS = get_typestore(Stores.ROS2_JAZZY)
+
+
+def _copy(src: Path, dst: Path, transform) -> Path:
+    """Copy a bag; ``transform(index_in_topic, topic, msgtype, raw)`` -> (topic, raw) or None (drop)."""
+    counts: dict[str, int] = {}
+    with AnyReader([src], default_typestore=TS) as reader, \
+            Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {}
+        for conn, t, raw in reader.messages():
+            i = counts.get(conn.topic, 0)
+            counts[conn.topic] = i + 1
+            out = transform(i, conn.topic, conn.msgtype, bytes(raw))
+            if out is None:
+                continue
+            topic, data = out
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, conn.msgtype, typestore=TS)
+            writer.write(conns[topic], t, data)
+    return dst
+
+
+def _drop_joints(raw: bytes, drop: set[str]) -> bytes:
+    msg = TS.deserialize_cdr(raw, "sensor_msgs/msg/JointState")
+    keep = [i for i, name in enumerate(msg.name) if name not in drop]
+    msg = dataclasses.replace(
+        msg, name=[msg.name[i] for i in keep], position=msg.position[keep],
+        velocity=msg.velocity[keep], effort=msg.effort[keep])
+    return bytes(TS.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("inspect")
+    full = write_bag(simulate(dataclasses.replace(scenario_by_name("short"), duration_s=20.0)), root / "full")
+    out = {"full": Path(full)}
+    out["no_gnss"] = _copy(full, root / "no_gnss",
+                           lambda i, topic, typ, raw: None if topic == topics.GNSS else (topic, raw))
+    wheels = set(topics.WHEEL_JOINTS)
+    out["no_wheels"] = _copy(full, root / "no_wheels", lambda i, topic, typ, raw: (
+        topic, _drop_joints(raw, wheels) if topic == topics.JOINT_STATES else raw))
+    force = {topics.DRIVE_JOINT, topics.ENGINE_JOINT}
+    out["no_force"] = _copy(full, root / "no_force", lambda i, topic, typ, raw: (
+        topic, _drop_joints(raw, force) if topic == topics.POWERTRAIN else raw))
+    out["renamed"] = _copy(full, root / "renamed", lambda i, topic, typ, raw: (
+        "/sensors/imu" if topic == topics.IMU else topic, raw))
+
+    imu_stamps: list[bytes] = []
+    with AnyReader([full], default_typestore=TS) as reader:
+        conn = [c for c in reader.connections if c.topic == topics.IMU]
+        for k, (_, _, raw) in enumerate(reader.messages(connections=conn)):
+            if k > 201:
+                break
+            imu_stamps.append(bytes(raw[4:12]))
+
+    def swap(i, topic, typ, raw):
+        if topic == topics.IMU and i in (100, 101):      # two swapped stamps: one out of order
+            raw = raw[:4] + imu_stamps[201 - i] + raw[12:]
+        if topic == topics.IMU and i == 201:             # a duplicated stamp (== the one before)
+            raw = raw[:4] + imu_stamps[200] + raw[12:]
+        return topic, raw
+    out["swapped"] = _copy(full, root / "swapped", swap)
+    return out
+
+
+def _files(*extra: Path) -> list[Path]:
+    return [params_file("sedan_d_class"), params_file("estimation"), *extra]
+
+
+@pytest.fixture(scope="module")
+def full_summary(bags):
+    return summarize(bags["full"], _files(), {})
+
+
+def _node_text(summary, node: str) -> str:
+    return "\n".join(summary["nodes"][node]["lines"])
+
+
+def test_every_topic_present_with_its_rate(full_summary):
+    inputs = full_summary["inputs"]
+    for topic in topics.INPUT_TOPICS:
+        assert inputs[topic]["present"] and inputs[topic]["type_ok"], topic
+        assert inputs[topic]["out_of_order"] == 0 and inputs[topic]["duplicates"] == 0
+    assert inputs[topics.IMU]["rate_hz"] == pytest.approx(200.0, rel=0.02)
+    assert inputs[topics.GNSS]["rate_hz"] == pytest.approx(10.0, rel=0.02)
+    assert inputs[topics.SPEED]["rate_hz"] == pytest.approx(100.0, rel=0.02)
+    assert inputs[topics.IMU]["count"] == pytest.approx(4001, abs=2)
+    assert inputs[topics.IMU]["frame_ids"] == {topics.IMU_FRAME: inputs[topics.IMU]["count"]}
+    assert inputs[topics.GNSS]["no_fix_share"] == 0.0
+    joints = inputs[topics.JOINT_STATES]["joints"]
+    assert joints["wheel_rl"]["velocity"] == 1.0 and joints[topics.STEERING_JOINT]["position"] == 1.0
+    assert inputs[topics.POWERTRAIN]["joints"][topics.DRIVE_JOINT]["effort"] == 1.0
+    roles = {o["topic"]: o["role"] for o in full_summary["other_topics"]}
+    assert roles[topics.GT_MASS] == "ground truth, used by report"
+    assert full_summary["empty_outputs"] == []
+    text = format_summary(full_summary)
+    assert "GNSS-aided; odom = ENU at the first fix" in text
+    assert "aligns at standstill" in text
+    assert text.splitlines()[-1] == "every output will be published"
+    json.dumps(full_summary, allow_nan=False)
+
+
+def test_out_of_order_and_duplicated_stamps(bags):
+    imu = summarize(bags["swapped"], _files(), {})["inputs"][topics.IMU]
+    assert imu["out_of_order"] == 1
+    assert imu["duplicates"] == 1
+    assert "1 out of order, 1 duplicated stamps" in "\n".join(inspect_bag._format_topic(imu))
+
+
+def test_no_gnss_dead_reckons(bags):
+    summary = summarize(bags["no_gnss"], _files(), {})
+    assert not summary["inputs"][topics.GNSS]["present"]
+    assert ("no GNSS: dead reckoning, odom = start pose with a free heading; position covariance grows"
+            in _node_text(summary, "fusion"))
+    assert "gnss/fix: MISSING" in format_summary(summary)
+
+
+def test_state_falls_back_to_vehicle_speed_without_wheel_speeds(bags, tmp_path):
+    on = tmp_path / "fallback_on.yaml"
+    on.write_text("vehicle_state:\n  ros__parameters:\n    speed_fallback: true\n")
+    off = tmp_path / "fallback_off.yaml"
+    off.write_text("/**:\n  ros__parameters:\n    speed_fallback: true\n"
+                   "vehicle_state:\n  ros__parameters:\n    speed_fallback: false\n")
+    summary = summarize(bags["no_wheels"], _files(on), {})
+    joints = summary["inputs"][topics.JOINT_STATES]["joints"]
+    assert set(joints) == {topics.STEERING_JOINT}
+    text = _node_text(summary, "vehicle_state")
+    assert "no wheel speeds: vx from vehicle/speed" in text
+    assert "steering from steering_wheel" in text
+    # the node's section overrides /**, a later file overrides an earlier one
+    assert "vx dead-reckoned from ax (drifts)" in _node_text(summarize(bags["no_wheels"], _files(off), {}),
+                                                              "vehicle_state")
+    assert "vx from vehicle/speed" in _node_text(summarize(bags["no_wheels"], _files(off, on), {}),
+                                                 "vehicle_state")
+    assert "vx from the wheel speeds" in _node_text(summarize(bags["full"], _files(off), {}), "vehicle_state")
+
+
+def test_mass_without_propulsion_force(bags):
+    summary = summarize(bags["no_force"], _files(), {})
+    assert "no propulsion force: the mass stays at its prior" in _node_text(summary, "mass")
+    assert topics.MASS in summary["prior_outputs"]
+    assert summary["empty_outputs"] == []          # the prior is still published
+
+
+def test_remap(bags):
+    plain = summarize(bags["renamed"], _files(), {})
+    assert not plain["inputs"][topics.IMU]["present"]
+    other = {o["topic"]: o for o in plain["other_topics"]}
+    assert other["/sensors/imu"]["role"] == "ignored"
+    assert other["/sensors/imu"]["remap_hint"] == "imu/data:=/sensors/imu"
+    assert set(plain["empty_outputs"]) >= {topics.ODOMETRY, topics.VEHICLE_STATE, topics.ROAD_SLOPE}
+    assert format_summary(plain).splitlines()[-1].startswith("will stay empty: ")
+    remapped = summarize(bags["renamed"], _files(), {"/imu/data": "/sensors/imu"})   # ROS order
+    assert remapped == summarize(bags["renamed"], _files(), {"/sensors/imu": "imu/data"})   # or reversed
+    imu = remapped["inputs"][topics.IMU]
+    assert imu["present"] and imu["bag_topics"] == ["/sensors/imu"]
+    assert imu["rate_hz"] == pytest.approx(200.0, rel=0.02)
+    assert remapped["empty_outputs"] == []
+    with pytest.raises(inspect_bag.InspectError):
+        summarize(bags["renamed"], _files(), {"/sensors/imu": "imu/raw"})
+
+
+def test_cli_exit_code_and_json(bags):
+    cmd = [sys.executable, "-m", "vehicle_estimation", "inspect", str(bags["full"])]
+    done = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert "every output will be published" in done.stdout
+    done = subprocess.run(cmd + ["--json", "--remap", "/x:=imu/data"], check=False, capture_output=True, text=True,
+                          timeout=120, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    data = json.loads(done.stdout)
+    assert data["inputs"][topics.IMU]["count"] > 0 and data["remaps"] == {"x": "imu/data"}
+    bad = subprocess.run(cmd[:-1] + [str(bags["full"].parent / "nothing")], check=False, capture_output=True,
+                         text=True, timeout=120, cwd=ROOT)
+    assert bad.returncode == 2 and "no bag" in bad.stderr
+
+
+@pytest.mark.parametrize(("node", "module", "kind", "param"), [
+    ("road_slope", "slope_node", "str", "method"),
+    ("vehicle_state", "state_node", "str", "filter"),
+    ("vehicle_state", "state_node", "bool", "speed_fallback"),
+    ("mass", "mass_node", "str", "method"),
+    ("mass", "mass_node", "str", "accel_source"),
+    ("mass", "mass_node", "str", "speed_source"),
+    ("mass", "mass_node", "bool", "require_slope"),
+])
+def test_node_defaults_match_the_node_sources(node, module, kind, param):
+    source = (ROOT / "vehicle_estimation" / "nodes" / f"{module}.py").read_text(encoding="utf-8")
+    found = re.findall(rf'declare_{kind}\(\s*"{re.escape(param)}",\s*("[^"]*"|True|False)', source)
+    assert len(found) == 1, f"{module}.py declares {param!r} {len(found)} times"
+    declared = found[0].strip('"') if kind == "str" else found[0] == "True"
+    assert inspect_bag.NODE_DEFAULTS[node][param] == declared, (
+        f"inspect_bag.NODE_DEFAULTS[{node!r}][{param!r}] drifted from {module}.py")
+
+
+def test_ros1_bag(bags, tmp_path):
+    """A ROS 1 .bag: stamps and content by deserialization, topics with a leading '/'."""
+    from rosbags.rosbag1 import Writer as Ros1Writer
+    ts1 = get_typestore(Stores.ROS1_NOETIC)
+    header_cls, time_cls = ts1.types["std_msgs/msg/Header"], ts1.types["builtin_interfaces/msg/Time"]
+    path = tmp_path / "drive.bag"
+    keep = (topics.IMU, topics.SPEED, topics.JOINT_STATES)
+    with AnyReader([bags["full"]], default_typestore=TS) as reader, Ros1Writer(path) as writer:
+        conns = {}
+        for conn, t, raw in reader.messages(connections=[c for c in reader.connections if c.topic in keep]):
+            if t > reader.start_time + 3_000_000_000:
+                break
+            msg = TS.deserialize_cdr(raw, conn.msgtype)
+            stamp = msg.header.stamp
+            header = header_cls(seq=0, stamp=time_cls(sec=stamp.sec, nanosec=stamp.nanosec),
+                                frame_id=msg.header.frame_id)
+            cls = ts1.types[conn.msgtype]
+            msg1 = cls(**{f: header if f == "header" else getattr(msg, f) for f in cls.__dataclass_fields__})
+            if conn.topic not in conns:
+                conns[conn.topic] = writer.add_connection("/" + conn.topic, conn.msgtype, typestore=ts1)
+            writer.write(conns[conn.topic], t, ts1.serialize_ros1(msg1, conn.msgtype))
+    summary = summarize(path, _files(), {})
+    assert summary["storage"] == "ROS 1 bag"
+    imu = summary["inputs"][topics.IMU]
+    assert imu["present"] and imu["unreadable"] == 0 and imu["bag_topics"] == ["/imu/data"]
+    assert imu["rate_hz"] == pytest.approx(200.0, rel=0.02) and imu["out_of_order"] == 0
+    assert summary["inputs"][topics.JOINT_STATES]["joints"]["wheel_rr"]["velocity"] == 1.0
+    assert "aligns at standstill" in _node_text(summary, "fusion")
+    assert not summary["inputs"][topics.POWERTRAIN]["present"]
+    assert summary["empty_outputs"] == [topics.MASS, topics.MASS_STAMPED]
