@@ -1,0 +1,79 @@
+"""Drives of the CommonRoad multi-body model (vehicle_estimation.validation.commonroad)."""
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("vehiclemodels")
+
+from vehicle_estimation import topics as T
+from vehicle_estimation.validation import commonroad as cr
+from vehicle_estimation.validation.lateral import read_drive
+
+DURATION = 6.0   # s: straight warm-up (5 s) and the first second of the step steer
+
+
+@pytest.fixture(scope="module")
+def trajectory():
+    return cr.simulate("step_steer", duration=DURATION)
+
+
+@pytest.fixture(scope="module")
+def result(trajectory):
+    return cr.sensor_result(trajectory, vibration_std=1.0, seed=3)
+
+
+def test_deterministic_for_a_seed(trajectory, result):
+    again = cr.sensor_result(trajectory, vibration_std=1.0, seed=3)
+    for key in ("imu", "gnss", "speed", "joint_states"):
+        for field, value in result.sensors[key].items():
+            np.testing.assert_array_equal(np.asarray(value), np.asarray(again.sensors[key][field]), err_msg=f"{key}.{field}")
+    other = cr.sensor_result(trajectory, vibration_std=1.0, seed=4)
+    assert not np.array_equal(other.sensors["imu"]["accel"], result.sensors["imu"]["accel"])
+
+
+def test_simulation_deterministic(trajectory):
+    short = cr.simulate("step_steer", duration=0.5)
+    np.testing.assert_array_equal(short.x, trajectory.x[:short.x.shape[0]])
+
+
+def test_truth_sideslip_is_atan_vy_vx(result):
+    tr = result.truth
+    np.testing.assert_allclose(tr["sideslip"], np.arctan2(tr["vy"], tr["vx"]), atol=1e-12)
+    assert np.max(np.abs(tr["sideslip"][tr["t"] > 5.5])) > math.radians(0.05)   # the step steer has begun
+
+
+def test_specific_force_at_cruise(result):
+    imu = result.sensors["imu"]
+    sel = (imu["t"] > 1.0) & (imu["t"] < 4.5)
+    mean = imu["accel"][sel].mean(axis=0)
+    assert mean[2] == pytest.approx(9.81, abs=0.1)
+    assert abs(mean[0]) < 0.15 and abs(mean[1]) < 0.15
+
+
+def test_wheel_speeds_match_vx_straight(trajectory, result):
+    js = result.sensors["joint_states"]
+    sel = js["t"] < 4.5
+    vx = np.interp(js["t"][sel], result.truth["t"], result.truth["vx"])
+    ratio = js["velocity"][sel, :4] * trajectory.params.R_w / vx[:, None]
+    assert np.all(np.abs(ratio - 1.0) < 0.02)
+
+
+def test_bag_stamps_start_at_zero(tmp_path, result):
+    path = cr.write_drive(result, tmp_path / "drive")
+    drive = read_drive(path)
+    assert drive["imu"]["t"][0] == 0.0
+    assert drive["truth"]["t"][0] == 0.0
+    assert drive["truth"]["sideslip_t"][0] == 0.0
+    assert drive["imu"]["t"][-1] == pytest.approx(DURATION, abs=0.01)
+    np.testing.assert_array_equal(drive["joints"]["steering_wheel"], result.sensors["joint_states"]["position"][:, 4])
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        topics = {c.topic for c in reader.connections}
+        first = min(log for _, log, _ in reader.messages())
+    assert first == 0
+    assert {T.IMU, T.GNSS, T.SPEED, T.JOINT_STATES, T.GT_MASS, T.GT_ROAD_SLOPE}.issubset(topics)
+    assert T.POWERTRAIN not in topics
+

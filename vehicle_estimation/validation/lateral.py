@@ -1,0 +1,261 @@
+"""Offline comparison of our state cores with a textbook linear single-track KF on one bag.
+
+:func:`compare_state_filters` reads a bag of :mod:`.commonroad` (or any bag with the topic
+contract and ground truth), and runs, without ROS:
+
+* the baseline :func:`vehicle_estimation.tools.stanford.baseline_linear_kf` (its ``cf``/``cr``
+  are per *axle*: 2 x the per-tyre ``VehicleParams`` values, as ``tools.stanford`` passes them),
+  fed with the IMU ay and yaw rate (averaged to 100 Hz, as the state node does), the road-wheel
+  angle (steering wheel / ``steering_ratio``) and the CAN speed (zero-order hold);
+* ``VehicleStateCKF``, ``VehicleStateVBACKF`` and ``VehicleStateAOUKF`` fed as
+  ``nodes/state_node.py`` feeds them (mirrored here, that file is not imported: it needs rclpy):
+  the node's default tunings (``p0_diag`` = paper P0, ``q_diag`` = paper Q x 0.01 s, ``r_diag``
+  = paper R, ``initial_vx`` 0 and ``init_vx_from_wheel_speeds`` true as in
+  ``params/estimation.yaml``, default ``vbackf.*``/``aoukf.*``, no GA-BPNN weights for this
+  car), raw IMU (no fusion bias: the node runs alone), slope unknown (slope 0 plus the
+  ``missing_slope_std_deg`` = 2 deg vx process noise) and the nominal mass; the last joint state
+  and speed *before* the IMU sample (in the bag a joint state with the same stamp is written
+  after the IMU message); a 1 s wait for wheel speeds before starting from ``initial_vx``; IMU
+  [ax, ay, r] averaged over the samples since the last 100 Hz step. Each filter runs twice:
+  ``wheels`` (joint-state wheel speeds) and ``can`` (wheel speeds NaN, vx from
+  ``vehicle/speed`` through ``update_speed``: the node's ``speed_fallback``).
+
+Metrics from ``start`` (default the end of the warm-up, 5 s): sideslip RMSE [deg], vy MAE and
+RMSE [m/s], vx RMSE [m/s], and the ratio of the filter's sideslip RMSE to the baseline's.
+CLI: ``python -m vehicle_estimation.validation.lateral BAG... [--vehicle YAML] [--wheel-radius R]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .. import topics as T
+from ..core.aoukf import AOUKFConfig, VehicleStateAOUKF
+from ..core.ckf import VehicleStateCKF, VehicleStateConfig
+from ..core.vbackf import VBConfig, VehicleStateVBACKF
+from ..core.vehicle_model import VehicleInputs
+from ..tools import metrics
+from ..tools.stanford import baseline_linear_kf
+from ..vehicle import VehicleParams, load_vehicle_params
+
+PARAMS_FILE = Path(__file__).resolve().parents[2] / "params" / "commonroad_bmw320i.yaml"
+FILTER_RATE_HZ = 100.0
+STAMP_TOLERANCE_S = 1e-6          # nodes.base
+STALE_INPUT_S = 0.5               # state node stale_input_s
+WHEEL_WAIT_S = 1.0                # state node
+GRADE_CORRELATION_S = 5.0         # state node
+MISSING_SLOPE_STD_DEG = 2.0       # state node missing_slope_std_deg
+SPEED_FALLBACK_STD = 0.3          # state node speed_fallback_std
+FILTERS = ("ckf", "vbackf", "aoukf")
+
+
+# --------------------------------------------------------------------------- bag reading
+def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
+    """The inputs and truth of a bag as arrays (header stamps, in bag order)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    want = {T.IMU, T.JOINT_STATES, T.SPEED, T.GT_VEHICLE_STATE, T.GT_SIDESLIP}
+    rows: dict[str, list] = {k: [] for k in want}
+    with AnyReader([Path(bag)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        conns = [c for c in reader.connections if c.topic.lstrip("/") in want]
+        for conn, log_ns, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            topic = conn.topic.lstrip("/")
+            if topic == T.GT_SIDESLIP:
+                rows[topic].append((log_ns * 1e-9, msg.data))
+                continue
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            if topic == T.IMU:
+                a, w = msg.linear_acceleration, msg.angular_velocity
+                rows[topic].append((t, a.x, a.y, a.z, w.x, w.y, w.z))
+            elif topic == T.JOINT_STATES:
+                vel = dict(zip(msg.name, msg.velocity))
+                pos = dict(zip(msg.name, msg.position))
+                rows[topic].append((t, *[vel.get(n, math.nan) for n in T.WHEEL_JOINTS],
+                                    pos.get(T.STEERING_JOINT, math.nan)))
+            elif topic == T.SPEED:
+                rows[topic].append((t, msg.twist.twist.linear.x, msg.twist.covariance[0]))
+            else:
+                tw = msg.twist.twist
+                rows[topic].append((t, tw.linear.x, tw.linear.y, tw.angular.z))
+    arr = {k: np.array(v, dtype=float) for k, v in rows.items()}
+    imu, js, sp, gt, gb = (arr[T.IMU], arr[T.JOINT_STATES], arr[T.SPEED], arr[T.GT_VEHICLE_STATE],
+                           arr[T.GT_SIDESLIP])
+    return {
+        "imu": {"t": imu[:, 0], "f": imu[:, 1:4], "w": imu[:, 4:7]},
+        "joints": {"t": js[:, 0], "wheels": js[:, 1:5], "steering_wheel": js[:, 5]},
+        "speed": {"t": sp[:, 0], "v": sp[:, 1], "var": sp[:, 2]},
+        "truth": {"t": gt[:, 0], "vx": gt[:, 1], "vy": gt[:, 2], "yaw_rate": gt[:, 3],
+                  "sideslip_t": gb[:, 0], "sideslip": gb[:, 1]},
+    }
+
+
+# --------------------------------------------------------------------------- cores
+def make_core(name: str, vehicle: VehicleParams):
+    """A core with the state node's default tuning (see the module docstring)."""
+    if name == "aoukf":
+        return VehicleStateAOUKF(vehicle, AOUKFConfig(initial_vx=0.0, init_vx_from_wheel_speeds=True), None)
+    paper = VehicleStateConfig()
+    config = VehicleStateConfig(P0=np.diag(np.diag(paper.P0)), Q=np.diag(np.diag(paper.Q) * paper.nominal_dt),
+                                R=np.diag(np.diag(paper.R)), initial_vx=0.0, init_vx_from_wheel_speeds=True)
+    if name == "vbackf":
+        return VehicleStateVBACKF(vehicle, config, VBConfig())
+    if name == "ckf":
+        return VehicleStateCKF(vehicle, config)
+    raise ValueError(f"unknown filter {name!r}")
+
+
+def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool) -> dict[str, np.ndarray]:
+    """Step one core through a drive as the state node would; (t, vx, vy, r, beta) per step."""
+    core = make_core(name, vehicle)
+    imu, js, sp = drive["imu"], drive["joints"], drive["speed"]
+    missing_slope_noise = 2.0 * (vehicle.gravity * math.sin(math.radians(MISSING_SLOPE_STD_DEG))) ** 2 \
+        * GRADE_CORRELATION_S
+    core.extra_vx_noise_density = missing_slope_noise
+    ji = si = 0
+    n_js, n_sp = js["t"].size, sp["t"].size
+    chassis = None
+    speed = None
+    first_imu_t = None
+    z_sum, z_count, last_step = np.zeros(3), 0, -math.inf
+    out = []
+    for k in range(imu["t"].size):
+        t = float(imu["t"][k])
+        while ji < n_js and js["t"][ji] < t - STAMP_TOLERANCE_S:
+            chassis = ji
+            ji += 1
+        while si < n_sp and sp["t"][si] < t - STAMP_TOLERANCE_S:
+            var = float(sp["var"][si])
+            speed = (float(sp["t"][si]), float(sp["v"][si]),
+                     var if math.isfinite(var) and var > 0.0 else SPEED_FALLBACK_STD ** 2)
+            si += 1
+        f, w = imu["f"][k], imu["w"][k]
+        fresh = chassis is not None and t - js["t"][chassis] <= STALE_INPUT_S
+        if fresh:
+            steer = float(js["steering_wheel"][chassis]) / vehicle.steering_ratio
+            wheels = js["wheels"][chassis].copy() if use_wheels else np.full(4, np.nan)
+        else:
+            steer, wheels = 0.0, np.full(4, np.nan)
+        if not math.isfinite(steer):
+            steer = 0.0
+        inputs = VehicleInputs(steer_angle=steer, wheel_speeds=wheels, slope=0.0, mass=vehicle.mass)
+        if not core.initialised and not np.all(np.isfinite(wheels)):
+            if first_imu_t is None:
+                first_imu_t = t
+            if t - first_imu_t < WHEEL_WAIT_S:
+                continue
+        z_sum += (f[0], f[1], w[2])
+        z_count += 1
+        if core.initialised and t - last_step < 1.0 / FILTER_RATE_HZ - STAMP_TOLERANCE_S:
+            continue
+        z = z_sum / z_count
+        z_sum[:] = 0.0
+        z_count = 0
+        last_step = t
+        core.step(t, inputs, z)
+        if (not np.all(np.isfinite(wheels[2:])) and speed is not None and t - speed[0] <= STALE_INPUT_S
+                and core.update_speed(speed[1], speed[2])):
+            speed = None
+        x = np.asarray(core.x, dtype=float)
+        out.append((t, x[0], x[1], x[2], float(core.sideslip)))
+    a = np.array(out)
+    return {"t": a[:, 0], "vx": a[:, 1], "vy": a[:, 2], "yaw_rate": a[:, 3], "sideslip": a[:, 4]}
+
+
+def run_baseline(drive: dict, vehicle: VehicleParams) -> dict[str, np.ndarray]:
+    """The linear single-track KF on 100 Hz means of the IMU (pairs of 200 Hz samples)."""
+    imu, js, sp = drive["imu"], drive["joints"], drive["speed"]
+    per = max(1, round(1.0 / (FILTER_RATE_HZ * np.median(np.diff(imu["t"])))))
+    n = imu["t"].size // per * per
+    t = imu["t"][:n].reshape(-1, per)[:, -1]
+    ay = imu["f"][:n, 1].reshape(-1, per).mean(axis=1)
+    r = imu["w"][:n, 2].reshape(-1, per).mean(axis=1)
+    ij = np.clip(np.searchsorted(js["t"], t - STAMP_TOLERANCE_S) - 1, 0, js["t"].size - 1)
+    delta = js["steering_wheel"][ij] / vehicle.steering_ratio
+    isp = np.clip(np.searchsorted(sp["t"], t - STAMP_TOLERANCE_S) - 1, 0, sp["t"].size - 1)
+    vx = np.maximum(sp["v"][isp], 1.0)
+    beta, rr = baseline_linear_kf(t, ay, r, delta, vx, m=vehicle.mass, lf=vehicle.lf, lr=vehicle.lr,
+                                  iz=vehicle.yaw_inertia, cf=2.0 * vehicle.cornering_stiffness_front,
+                                  cr=2.0 * vehicle.cornering_stiffness_rear)
+    return {"t": t, "vx": vx, "vy": vx * np.tan(beta), "yaw_rate": rr, "sideslip": beta}
+
+
+def _scores(est: dict, truth: dict, start: float) -> dict[str, float]:
+    def err(key, tt, yt):
+        ta, ea, ra = metrics.align(est["t"], est[key], tt, yt)
+        sel = ta >= start
+        return ea[sel], ra[sel]
+
+    b_e, b_r = err("sideslip", truth["sideslip_t"], truth["sideslip"])
+    vy_e, vy_r = err("vy", truth["t"], truth["vy"])
+    vx_e, vx_r = err("vx", truth["t"], truth["vx"])
+    return {"sideslip_rmse_deg": math.degrees(metrics.rmse(b_e, b_r)),
+            "vy_mae": metrics.mae(vy_e, vy_r), "vy_rmse": metrics.rmse(vy_e, vy_r),
+            "vx_rmse": metrics.rmse(vx_e, vx_r)}
+
+
+def compare_state_filters(bag: Path, *, vehicle: VehicleParams | str | Path | None = None,
+                          wheel_radius: float | None = None, start: float = 5.0,
+                          filters: Sequence[str] = FILTERS) -> dict:
+    """Scores of the baseline and of each filter (with and without wheel speeds) on ``bag``.
+
+    ``vehicle``: params (default ``params/commonroad_bmw320i.yaml``); ``wheel_radius``
+    overrides its ``wheel_radius`` (e.g. the measured effective rolling radius).
+    Returns ``{"bag", "baseline": scores, "<filter>/wheels": scores, "<filter>/can": scores}``;
+    each filter's scores carry ``ratio`` = its sideslip RMSE / the baseline's.
+    """
+    if vehicle is None or isinstance(vehicle, (str, Path)):
+        vehicle = load_vehicle_params(PARAMS_FILE if vehicle is None else vehicle)
+    if wheel_radius is not None:
+        vehicle = dataclasses.replace(vehicle, wheel_radius=float(wheel_radius))
+    drive = read_drive(Path(bag))
+    truth = drive["truth"]
+    out: dict = {"bag": str(bag), "wheel_radius": vehicle.wheel_radius}
+    base = _scores(run_baseline(drive, vehicle), truth, start)
+    out["baseline"] = base
+    for name in filters:
+        for mode in ("wheels", "can"):
+            s = _scores(run_core(name, drive, vehicle, use_wheels=mode == "wheels"), truth, start)
+            s["ratio"] = s["sideslip_rmse_deg"] / base["sideslip_rmse_deg"] if base["sideslip_rmse_deg"] > 0 else math.nan
+            out[f"{name}/{mode}"] = s
+    return out
+
+
+def format_table(result: dict) -> str:
+    lines = [f"{Path(result['bag']).name} (wheel_radius {result['wheel_radius']:.5f} m)",
+             f"{'estimator':<16}{'beta RMSE deg':>14}{'vy MAE':>9}{'vy RMSE':>9}{'vx RMSE':>9}{'ratio':>8}"]
+    for key, s in result.items():
+        if not isinstance(s, dict):
+            continue
+        ratio = f"{s['ratio']:8.2f}" if "ratio" in s else f"{'1.00':>8}"
+        lines.append(f"{key:<16}{s['sideslip_rmse_deg']:14.3f}{s['vy_mae']:9.4f}{s['vy_rmse']:9.4f}"
+                     f"{s['vx_rmse']:9.4f}{ratio}")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m vehicle_estimation.validation.lateral",
+                                 description="State cores vs the linear single-track KF on validation bags")
+    ap.add_argument("bags", nargs="+", type=Path)
+    ap.add_argument("--vehicle", type=Path, default=None, help=f"vehicle params (default {PARAMS_FILE.name})")
+    ap.add_argument("--wheel-radius", type=float, default=None, help="override vehicle.wheel_radius [m]")
+    ap.add_argument("--filter", action="append", choices=FILTERS, help="default: all")
+    ap.add_argument("--start", type=float, default=5.0, help="score from this time [s]")
+    args = ap.parse_args(argv)
+    for bag in args.bags:
+        result = compare_state_filters(bag, vehicle=args.vehicle, wheel_radius=args.wheel_radius,
+                                       start=args.start, filters=args.filter or FILTERS)
+        print(format_table(result))
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
