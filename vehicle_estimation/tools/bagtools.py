@@ -23,11 +23,15 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Ros2Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores
 from rosbags.typesys.base import Nodetype, normalize_fieldname
 from rosbags.typesys.store import Typestore
 
-from vehicle_estimation.tools.msgconvert import convert_message, jazzy_typestore
+from vehicle_estimation.tools.msgconvert import (
+    cached_typestore,
+    convert_message,
+    jazzy_typestore,
+)
 
 Storage = Literal["mcap", "sqlite3", "ros1"]
 STORAGES = ("mcap", "sqlite3", "ros1")
@@ -35,15 +39,9 @@ HEADER = "std_msgs/msg/Header"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 JOINT_ARRAYS = ("position", "velocity", "effort")
 
-_NOETIC: Typestore | None = None
-
-
 def noetic_typestore() -> Typestore:
     """The ROS 1 Noetic typestore, whose msgdefs and MD5 sums ROS 1 tools expect in a ``.bag``."""
-    global _NOETIC
-    if _NOETIC is None:
-        _NOETIC = get_typestore(Stores.ROS1_NOETIC)
-    return _NOETIC
+    return cached_typestore(Stores.ROS1_NOETIC)
 
 
 def _norm(topic: str) -> str:

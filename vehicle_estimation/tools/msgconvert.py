@@ -10,6 +10,7 @@ that what the target lacks is dropped and what the source lacks gets the target'
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -18,15 +19,16 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.base import Nodetype, normalize_fieldname
 from rosbags.typesys.store import Typestore
 
-_JAZZY: Typestore | None = None
+
+@functools.lru_cache(maxsize=None)
+def cached_typestore(store: Stores) -> Typestore:
+    """A rosbags typestore, built once per process: building one costs tens of milliseconds."""
+    return get_typestore(store)
 
 
 def jazzy_typestore() -> Typestore:
-    """The ROS 2 Jazzy typestore (built once: building it costs tens of milliseconds)."""
-    global _JAZZY
-    if _JAZZY is None:
-        _JAZZY = get_typestore(Stores.ROS2_JAZZY)
-    return _JAZZY
+    """The ROS 2 Jazzy typestore: the types the nodes speak."""
+    return cached_typestore(Stores.ROS2_JAZZY)
 
 
 def _dtype(base: str) -> np.dtype:
