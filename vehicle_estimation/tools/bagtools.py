@@ -39,6 +39,7 @@ HEADER = "std_msgs/msg/Header"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 JOINT_ARRAYS = ("position", "velocity", "effort")
 
+
 def noetic_typestore() -> Typestore:
     """The ROS 1 Noetic typestore, whose msgdefs and MD5 sums ROS 1 tools expect in a ``.bag``."""
     return cached_typestore(Stores.ROS1_NOETIC)
