@@ -112,7 +112,7 @@ def vehicle_params_mapping(p=None, *, wheel_radius: float | None = None) -> dict
         "track_front": p.T_f, "track_rear": p.T_r, "cg_height": p.h_cg, "yaw_inertia": p.I_z,
         "wheel_radius": p.R_w if wheel_radius is None else wheel_radius,
         "wheel_inertia": 4.0 * p.I_y_w,
-        "frontal_area": 2.1, "drag_coefficient": 0.001, "air_density": 1.2, "rolling_resistance": 0.0,
+        "frontal_area": 2.1, "drag_coefficient": 0.05, "air_density": 1.2, "rolling_resistance": 0.0,
         "driveline_efficiency": 0.9, "final_drive": 3.23,
         "gear_ratios": [4.32, 2.46, 1.66, 1.23, 1.0, 0.85],
         "steering_ratio": STEERING_RATIO, "driven_axle": "rear",
@@ -141,7 +141,7 @@ def params_yaml(p=None) -> str:
         "track_front": f"{lib} T_f", "track_rear": f"{lib} T_r", "cg_height": f"{lib} h_cg",
         "yaw_inertia": f"{lib} I_z", "wheel_radius": f"{lib} R_w (see effective_rolling_radius)",
         "wheel_inertia": f"{lib} 4 x I_y_w", "frontal_area": "guess (real 320i ~2.1 m^2)",
-        "drag_coefficient": "the model has NO aero drag; VehicleParams needs > 0: tiny",
+        "drag_coefficient": "the model has NO aero drag; 0.05 is the lowest the nodes accept (30 N at 22 m/s)",
         "air_density": "guess", "rolling_resistance": "the model has none",
         "driveline_efficiency": "guess (no powertrain in the model)", "final_drive": "guess",
         "gear_ratios": "guess (6-speed manual)",
@@ -174,7 +174,8 @@ def params_yaml(p=None) -> str:
         if isinstance(value, str):
             text = value
         elif isinstance(value, list):
-            text = "[" + ", ".join(f"{x:g}" for x in value) + "]"
+            # repr keeps "1.0" a float: a ROS params file refuses an array of mixed types.
+            text = "[" + ", ".join(repr(float(x)) for x in value) + "]"
         else:
             text = repr(round(float(value), 6))
         note = notes.get(key, "")
