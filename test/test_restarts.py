@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -65,12 +63,19 @@ def drive(tmp_path_factory) -> Path:
     return bag
 
 
-def _replay_killing(bag: Path, out: Path, victims: list[tuple[str, float]]) -> tuple[int, str, str]:
-    """Replay ``bag``; SIGKILL node ``name`` once the progress passes ``percent``."""
+def _replay_killing(bag: Path, out: Path, victims: list[tuple[str, float]], tmp: Path) -> tuple[int, str, str]:
+    """Replay ``bag``; SIGKILL node ``name`` at ``seconds`` of bag time, for each victim.
+
+    The replay pauses at each kill time (``VEHICLE_ESTIMATION_REPLAY_PAUSE``) until the test has
+    killed the node, so the kill lands at that bag time however fast or slow the machine is.
+    """
+    resume = [tmp / f"resume_{i}" for i in range(len(victims))]
+    env = dict(os.environ, VEHICLE_ESTIMATION_REPLAY_PAUSE=",".join(
+        f"{seconds}:{path}" for (_, seconds), path in zip(victims, resume)))
     proc = subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "replay", str(bag),
-                             "--record", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                             "--record", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
     err: list[str] = []
-    progress = [0.0]
+    paused = threading.Semaphore(0)
 
     def read_stderr() -> None:
         buf = b""
@@ -81,34 +86,28 @@ def _replay_killing(bag: Path, out: Path, victims: list[tuple[str, float]]) -> t
             if ch in b"\r\n":
                 line = buf.decode(errors="replace")
                 err.append(line)
-                m = re.search(r"\]\s+([\d.]+)%", line)
-                if m:
-                    progress[0] = float(m.group(1))
+                if line.startswith("replay: paused at"):
+                    paused.release()
                 buf = b""
             else:
                 buf += ch
 
     reader = threading.Thread(target=read_stderr, daemon=True)
     reader.start()
-    pending = list(victims)
-    deadline = time.monotonic() + 600
-    while pending and proc.poll() is None and time.monotonic() < deadline:
-        name, percent = pending[0]
-        if progress[0] >= percent:
-            pids = [pid for pid, cmd in _children(proc.pid).items() if f"vehicle_estimation.nodes.{name}" in cmd]
-            assert len(pids) == 1, _children(proc.pid)
-            os.kill(pids[0], signal.SIGKILL)
-            pending.pop(0)
-        time.sleep(0.05)
+    for (name, _), path in zip(victims, resume):
+        assert paused.acquire(timeout=600), "the replay never paused: " + "\n".join(err[-20:])
+        pids = [pid for pid, cmd in _children(proc.pid).items() if f"vehicle_estimation.nodes.{name}" in cmd]
+        assert len(pids) == 1, _children(proc.pid)
+        os.kill(pids[0], signal.SIGKILL)
+        path.touch()
     stdout, _ = proc.communicate(timeout=600)
     reader.join(timeout=10)
-    assert not pending, f"replay ended before the kills {pending}: " + "\n".join(err[-20:])
     return proc.returncode, stdout.decode(), "\n".join(err)
 
 
 def test_kill_9_mid_replay_respawns_and_mass_resumes(drive, tmp_path):
     out = tmp_path / "estimates"
-    code, stdout, stderr = _replay_killing(drive, out, [("mass_node", 70.0), ("fusion_node", 80.0)])
+    code, stdout, stderr = _replay_killing(drive, out, [("mass_node", 42.0), ("fusion_node", 48.0)], tmp_path)
     assert code == 0, stdout + stderr[-3000:]
     assert "mass exited with -9; respawning" in stderr and "fusion exited with -9; respawning" in stderr
     assert "2 node respawn(s)" in stdout

@@ -389,6 +389,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
             t_start, t_end = reader.start_time, reader.end_time
             _handshake(driver, executor, group, t_start, startup_timeout)
             tick_ns = int(round(tick_s * 1e9))
+            pauses = _pauses_from_environment()
             next_tick = t_start + tick_ns
             for conn, timestamp, data in reader.messages(connections=play + truth):
                 if conn.id not in play_ids:   # ground truth: copied when recording
@@ -396,6 +397,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                         writer.write(truth_conns["/" + truth_ids[conn.id]], timestamp, to_cdr(conn.id, data))
                     continue
                 while timestamp >= next_tick:
+                    pauses = _pause_if_asked(pauses, (next_tick - t_start) * 1e-9)
                     _tick(driver, executor, group, next_tick, stall_timeout)
                     stats.ticks += 1
                     next_tick += tick_ns
@@ -532,6 +534,38 @@ def _tick(driver, executor, group, tick_ns: int, timeout: float) -> None:
     label = str(tick_ns)
     _spin_until(driver, executor, group, lambda: driver.quiescent(label),
                 lambda: driver.send_sync(label), timeout, f"tick {label}", tick_label=label)
+
+
+#: Fault injection for tests: ``SECONDS:FILE[,SECONDS:FILE...]``. Once the replay has played
+#: SECONDS of the bag it says so on stderr and waits until FILE exists, so that a test can kill
+#: a node at a known bag time instead of racing the replay.
+PAUSE_ENV = "VEHICLE_ESTIMATION_REPLAY_PAUSE"
+
+
+def _pauses_from_environment() -> list[tuple[float, Path]]:
+    import os
+    spec = os.environ.get(PAUSE_ENV, "").strip()
+    pauses = []
+    for item in filter(None, (part.strip() for part in spec.split(","))):
+        seconds, _, path = item.partition(":")
+        try:
+            pauses.append((float(seconds), Path(path)))
+        except ValueError:
+            raise ReplayError(f"{PAUSE_ENV}: {item!r} is not SECONDS:FILE") from None
+    return sorted(pauses)
+
+
+def _pause_if_asked(pauses: list[tuple[float, Path]], bag_s: float) -> list[tuple[float, Path]]:
+    """Wait for the files of the pauses due at ``bag_s``; returns the pauses still to come.
+
+    The node processes keep running while the player waits; nothing is published meanwhile.
+    """
+    while pauses and bag_s >= pauses[0][0]:
+        seconds, path = pauses.pop(0)
+        print(f"\nreplay: paused at {seconds:.1f} s of bag until {path} exists", file=sys.stderr, flush=True)
+        while not path.exists():
+            time.sleep(0.05)
+    return pauses
 
 
 def _clock(ns: int) -> Clock:
