@@ -45,10 +45,14 @@ from pathlib import Path
 from vehicle_estimation.paths import params_file
 
 
+def _params_files(args: argparse.Namespace) -> list[Path]:
+    """``--vehicle`` then every ``--params`` (default ``estimation``): a later file wins."""
+    return [params_file(args.vehicle)] + [params_file(name) for name in (args.params or ["estimation"])]
+
+
 def _node_group(args: argparse.Namespace, overrides=None, log_dir: Path | None = None, remaps=()):
     from vehicle_estimation.tools.processes import NodeGroup
-    files = [params_file(args.vehicle)] + [params_file(name) for name in (args.params or ["estimation"])]
-    return NodeGroup(files, namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir,
+    return NodeGroup(_params_files(args), namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir,
                      remaps=list(remaps))
 
 
@@ -120,9 +124,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from vehicle_estimation.tools.replay import ReplayError, print_stats, replay
     # What `inspect` says of this bag with these params: the sources and fallbacks each node
     # will use, and what will stay empty, before minutes of replay.
-    files = [params_file(args.vehicle)] + [params_file(name) for name in (args.params or ["estimation"])]
     try:
-        print(format_summary(summarize(Path(args.bag), files, dict(args.remap))), file=sys.stderr)
+        print(format_summary(summarize(Path(args.bag), _params_files(args), dict(args.remap))), file=sys.stderr)
     except (InspectError, OSError, ValueError) as exc:
         print(f"replay: cannot inspect {args.bag} ({exc}); replaying anyway", file=sys.stderr)
     record = Path(args.record) if args.record else None

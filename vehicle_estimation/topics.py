@@ -11,6 +11,14 @@ JOINT_STATES = "vehicle/joint_states"  # sensor_msgs/JointState, wheels + steeri
 POWERTRAIN = "vehicle/powertrain"     # sensor_msgs/JointState, engine, load, gear, drive
 
 INPUT_TOPICS = (IMU, GNSS, SPEED, JOINT_STATES, POWERTRAIN)
+#: The type of each input (README, "Inputs"): a topic of another type never reaches the nodes.
+INPUT_TYPES = {
+    IMU: "sensor_msgs/msg/Imu",
+    GNSS: "sensor_msgs/msg/NavSatFix",
+    SPEED: "geometry_msgs/msg/TwistWithCovarianceStamped",
+    JOINT_STATES: "sensor_msgs/msg/JointState",
+    POWERTRAIN: "sensor_msgs/msg/JointState",
+}
 
 # Outputs (reliable, keep-last)
 ODOMETRY = "estimation/odometry"              # nav_msgs/Odometry
@@ -53,12 +61,12 @@ GNSS_FRAME = "gnss_link"
 def parse_remap(text: str) -> tuple[str, str]:
     """``FROM:=TO`` -> ``(FROM, TO)`` as written; ``ValueError`` saying what is malformed."""
     if text.count(":=") != 1:
-        raise ValueError(f"remap {text!r} must be FROM:=TO (one ':='), e.g. /sensors/imu:=imu/data")
+        raise ValueError(f"remap {text!r} must be FROM:=TO (one ':='), e.g. imu/data:=/sensors/imu")
     source, target = (part.strip() for part in text.split(":="))
     for what, name in (("FROM", source), ("TO", target)):
         if not name.strip("/") or any(c.isspace() for c in name):
             raise ValueError(f"remap {text!r}: in FROM:=TO, {what} must be a topic name without spaces "
-                             "(e.g. /sensors/imu:=imu/data)")
+                             "(e.g. imu/data:=/sensors/imu)")
     return source, target
 
 

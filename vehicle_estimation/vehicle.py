@@ -184,9 +184,21 @@ def read_ros_params_file(path: str | Path) -> dict[str, Any]:
     """
     with open(path, "r", encoding="utf-8") as handle:
         document = yaml.safe_load(handle) or {}
+    return merge_ros_parameters(document)
+
+
+def merge_ros_parameters(document: Mapping[str, Any], node: str | None = None) -> dict[str, Any]:
+    """The ``ros__parameters`` of a parsed params file that apply to ``node``, nested as written.
+
+    ``/**`` first, then the node's own section (a key whose last name is ``node``: ``mass``,
+    ``/car1/mass``) over it, as rcl does; ``node=None`` merges every section.
+    """
     merged: dict[str, Any] = {}
     keys = sorted(document, key=lambda k: 0 if k in ("/**", "**") else 1)
     for key in keys:
+        shared = key in ("/**", "**")
+        if not (shared or node is None or str(key).strip("/").split("/")[-1] == node):
+            continue
         section = document[key]
         if isinstance(section, dict) and "ros__parameters" in section:
             _deep_merge(merged, section["ros__parameters"] or {})

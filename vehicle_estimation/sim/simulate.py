@@ -299,10 +299,7 @@ def make_sensors(scn: Scenario, cfg: SensorConfig, truth: dict, kin: dict, seeds
     unknown = set(cfg.powertrain_reports) - set(powertrain)
     if unknown:
         raise ValueError(f"SensorConfig.powertrain_reports: unknown signals {sorted(unknown)}")
-    for name in powertrain:
-        if name not in cfg.powertrain_reports:
-            powertrain[name] = np.full(tp.size, np.nan)
-    sensors["powertrain"] = {"t": tp, "engine_speed": powertrain["engine_speed"],
-                             "engine_torque": powertrain["engine_torque"], "load": powertrain["engine_load"],
-                             "gear": powertrain["gear"], "drive_force": powertrain["drive_force"]}
+    reported = {name: (v if name in cfg.powertrain_reports else np.full(tp.size, np.nan))
+                for name, v in powertrain.items()}
+    sensors["powertrain"] = {"t": tp, "load": reported.pop("engine_load"), **reported}
     return sensors

@@ -34,6 +34,9 @@ import numpy as np
 import yaml
 
 from vehicle_estimation import topics
+from vehicle_estimation.nodes import PIPELINE
+from vehicle_estimation.tools.report import json_safe
+from vehicle_estimation.vehicle import merge_ros_parameters
 
 #: Content checks deserialize at most this many messages of a topic (every k-th).
 MAX_SAMPLES = 2000
@@ -41,16 +44,7 @@ MAX_SAMPLES = 2000
 START_IMU_SAMPLES = 400
 START_SPEED_SAMPLES = 200
 
-NODES = ("fusion", "vehicle_state", "road_slope", "mass")
-
-#: The contract's message type of each input.
-CONTRACT_TYPES = {
-    topics.IMU: "sensor_msgs/msg/Imu",
-    topics.GNSS: "sensor_msgs/msg/NavSatFix",
-    topics.SPEED: "geometry_msgs/msg/TwistWithCovarianceStamped",
-    topics.JOINT_STATES: "sensor_msgs/msg/JointState",
-    topics.POWERTRAIN: "sensor_msgs/msg/JointState",
-}
+NODES = tuple(spec.name for spec in PIPELINE)
 
 #: The contract's joints and the entries of each that the nodes read (see the README's Inputs).
 CONTRACT_JOINTS = {
@@ -123,11 +117,6 @@ def _flatten(values: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _node_of_section(key: str) -> str | None:
-    name = str(key).strip("/").split("/")[-1]
-    return name if name in NODES else None
-
-
 def layered_params(params_files: list[Path]) -> dict[str, dict[str, Any]]:
     """Effective parameters per node: defaults, then per file ``/**`` and the node's section."""
     defaults = _dataclass_defaults()
@@ -139,19 +128,8 @@ def layered_params(params_files: list[Path]) -> dict[str, dict[str, Any]]:
             raise InspectError(f"cannot read params file {path}: {exc}") from exc
         if not isinstance(document, dict):
             raise InspectError(f"params file {path} is not a mapping of node sections")
-        shared: dict[str, Any] = {}
-        per_node: dict[str, dict[str, Any]] = {node: {} for node in NODES}
-        for key, section in document.items():
-            params = section.get("ros__parameters") if isinstance(section, dict) else None
-            if not isinstance(params, dict):
-                continue
-            if str(key) in ("/**", "**"):
-                shared.update(_flatten(params))
-            elif (node := _node_of_section(key)) is not None:
-                per_node[node].update(_flatten(params))
         for node in NODES:
-            merged[node].update(shared)
-            merged[node].update(per_node[node])
+            merged[node].update(_flatten(merge_ros_parameters(document, node)))
     return merged
 
 
@@ -202,7 +180,7 @@ class _TopicStats:
 
     @property
     def type_ok(self) -> bool:
-        return self.types == {CONTRACT_TYPES[self.contract]}
+        return self.types == {topics.INPUT_TYPES[self.contract]}
 
 
 def _joint_sample(stats: _TopicStats, msg: Any) -> None:
@@ -271,7 +249,7 @@ def _read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
         every = {t: max(1, math.ceil(totals[t] / MAX_SAMPLES)) for t in contract}
         by_conn = {c.id: contract[remaps.get(_norm(c.topic), _norm(c.topic))] for c in used}
         cdr = {c.id: is2 and getattr(c.ext, "serialization_format", "cdr") == "cdr" for c in used}
-        contract_ok = {c.id: c.msgtype == CONTRACT_TYPES[by_conn[c.id].contract] for c in used}
+        contract_ok = {c.id: c.msgtype == topics.INPUT_TYPES[by_conn[c.id].contract] for c in used}
         for conn, log_ns, raw in reader.messages(connections=used) if used else ():
             stats = by_conn[conn.id]
             index = stats.count
@@ -315,7 +293,7 @@ def _read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
 def _topic_summary(stats: _TopicStats) -> dict[str, Any]:
     present = stats.count > 0 or bool(stats.bag_topics)
     out: dict[str, Any] = {"topic": stats.contract, "present": present,
-                           "expected_type": CONTRACT_TYPES[stats.contract]}
+                           "expected_type": topics.INPUT_TYPES[stats.contract]}
     if not present:
         return out
     s = np.asarray(stats.stamps, dtype=float)
@@ -595,7 +573,7 @@ def summarize(bag: Path, params_files: list[Path], remaps: dict[str, str]) -> di
         if not gt:
             # a missing input under a namespace (/car1/imu/data), or the only topic of its type
             hint = next((t for t in missing if _norm(topic).endswith("/" + t)), None)
-            by_type = [t for t in missing if {CONTRACT_TYPES[t]} == entry["types"]]
+            by_type = [t for t in missing if {topics.INPUT_TYPES[t]} == entry["types"]]
             same = [o for o, e in data["others"].items() if e["types"] == entry["types"]]
             if hint is None and len(by_type) == 1 and len(same) == 1:
                 hint = by_type[0]
@@ -613,22 +591,9 @@ def summarize(bag: Path, params_files: list[Path], remaps: dict[str, str]) -> di
         "remaps": remaps,
         "inputs": inputs,
         "other_topics": others,
-        "params": {node: {k: _jsonable(v) for k, v in params[node].items() if k in shown} for node in NODES},
+        "params": {node: {k: json_safe(v) for k, v in params[node].items() if k in shown} for node in NODES},
         **plan,
     }
-
-
-def _jsonable(value: Any) -> Any:
-    """``value`` with tuples as lists, numpy scalars as Python ones and NaN/inf as None."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    return value
 
 
 def _pct(x: float) -> str:
@@ -743,7 +708,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"inspect: {exc}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(_jsonable(summary), indent=2, allow_nan=False))
+        print(json.dumps(json_safe(summary), indent=2, allow_nan=False))
     else:
         print(format_summary(summary))
     return 0

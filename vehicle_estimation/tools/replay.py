@@ -38,14 +38,13 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, DurabilityPolicy, HistoryPolicy
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
 from rosgraph_msgs.msg import Clock
 
 from vehicle_estimation import topics
 from vehicle_estimation.nodes import PIPELINE
 from vehicle_estimation.nodes.base import (
     ACK_TOPIC, MATCHED_PREFIX, make_executor, RX_PREFIX, SOURCES_PREFIX, SYNC_TOPIC, TX_PREFIX, replay_qos)
-from vehicle_estimation.tools.msgconvert import ros1_to_cdr
+from vehicle_estimation.tools.msgconvert import jazzy_typestore, ros1_to_cdr
 
 #: Estimates recorded to the output bag (relative names, resolved in the node namespace).
 RECORDED_TOPICS = (
@@ -62,16 +61,6 @@ RECORDED_TOPICS = (
     (topics.MASS_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
 )
 DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
-
-#: The type each input topic of the contract has (README, "Inputs"): a bag topic of another
-#: type would never match the nodes' subscriptions, and the start-up would only time out.
-INPUT_TYPES = {
-    topics.IMU: "sensor_msgs/msg/Imu",
-    topics.GNSS: "sensor_msgs/msg/NavSatFix",
-    topics.SPEED: "geometry_msgs/msg/TwistWithCovarianceStamped",
-    topics.JOINT_STATES: "sensor_msgs/msg/JointState",
-    topics.POWERTRAIN: "sensor_msgs/msg/JointState",
-}
 
 DEFAULT_TICK_S = 0.1
 #: Nodes acknowledge by themselves whenever their counts change after a sync; a resend is
@@ -111,17 +100,14 @@ def _topic_plan(connections, remap: dict[str, str], input_topics: set[str],
                 truth_topics: set[str]) -> tuple[dict[int, str], dict[int, str]]:
     """Bag connection id -> contract topic, for the inputs to play and the truth to copy.
 
-    A remap names a bag topic (with or without '/') and the contract topic it is played as;
-    a bag topic that is neither (after remapping) is ignored.
+    ``remap``: bag topic -> contract topic (:func:`vehicle_estimation.topics.bag_to_contract`);
+    a bag topic that is neither an input nor ground truth (after remapping) is ignored.
     """
     in_bag = {_norm(c.topic) for c in connections}
     for source, target in remap.items():
         if source not in in_bag:
             raise ReplayError(f"--remap {source}:={target}: the bag has no topic {source} "
                               f"(it has {', '.join(sorted(in_bag))})")
-        if target not in input_topics | truth_topics:
-            raise ReplayError(f"--remap {source}:={target}: {target} is not a topic of the contract "
-                              f"(inputs: {', '.join(sorted(input_topics))}; or ground truth)")
     play: dict[int, str] = {}
     truth: dict[int, str] = {}
     played_from: dict[str, str] = {}
@@ -132,9 +118,9 @@ def _topic_plan(connections, remap: dict[str, str], input_topics: set[str],
             if played_from.setdefault(target, source) != source:
                 raise ReplayError(f"bag topics {played_from[target]} and {source} would both be played as "
                                   f"{target}; remap or drop one of them")
-            if conn.msgtype != INPUT_TYPES.get(target, conn.msgtype):
+            if conn.msgtype != topics.INPUT_TYPES.get(target, conn.msgtype):
                 raise ReplayError(f"bag topic {conn.topic} (played as {target}) has type {conn.msgtype}; "
-                                  f"the contract wants {INPUT_TYPES[target]}")
+                                  f"the contract wants {topics.INPUT_TYPES[target]}")
             play[conn.id] = target
         elif target in truth_topics:
             truth[conn.id] = target
@@ -334,7 +320,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     memory with it).
     """
     stats = ReplayStats()
-    typestore = get_typestore(Stores.ROS2_JAZZY)
+    typestore = jazzy_typestore()
     input_topics = {t for t in topics.INPUT_TOPICS}
     truth_topics = {t for t in topics.GROUND_TRUTH_TOPICS}
     try:

@@ -125,13 +125,13 @@ def read_bag(bag_path: str | Path, wanted: Sequence[str]) -> dict[str, Series]:
 
 # --------------------------------------------------------------------- helpers
 def json_safe(value: Any) -> Any:
-    """JSON-safe: NaN/inf -> None, NumPy scalars -> Python."""
+    """JSON-safe: NaN/inf -> None, NumPy scalars -> Python, tuples and sets -> lists."""
     if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set)):
         return [json_safe(v) for v in value]
-    if isinstance(value, (np.integer,)):
-        return int(value)
+    if isinstance(value, np.generic) and not isinstance(value, np.floating):
+        return value.item()
     if isinstance(value, (float, np.floating)):
         value = float(value)
         return value if math.isfinite(value) else None
