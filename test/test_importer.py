@@ -12,12 +12,12 @@ import yaml
 pytest.importorskip("rosbags")
 
 from vehicle_estimation import topics as T  # noqa: E402
-from vehicle_estimation.paths import params_file  # noqa: E402
+from vehicle_estimation.paths import params_file, shared_data_dir  # noqa: E402
 from vehicle_estimation.tools import importer  # noqa: E402
 from vehicle_estimation.tools.importer import MappingError, convert, import_logs, load_signals  # noqa: E402
 from vehicle_estimation.vehicle import load_vehicle_params  # noqa: E402
 
-STANFORD_DIR = Path("/work/shared/data/stanford_sideslip_2014")
+STANFORD_DIR = shared_data_dir("stanford_sideslip_2014")
 
 
 def _read(bag: Path) -> dict[str, list]:
@@ -200,7 +200,7 @@ def test_cli_reports_a_bad_mapping(tmp_path, capsys):
 def test_stanford_map_imports_into_a_bag_the_report_reads(tmp_path):
     from vehicle_estimation.tools import report
     bag = tmp_path / "stanford"
-    result = import_logs("stanford_sideslip_2014", bag, max_rows=300)
+    result = import_logs("stanford_sideslip_2014", bag, base_dir=STANFORD_DIR, max_rows=300)
     assert result.counts == {T.IMU: 300, T.JOINT_STATES: 300, T.GT_VEHICLE_STATE: 300, T.GT_SIDESLIP: 300}
     data = report.read_bag(bag, [T.GT_VEHICLE_STATE, T.GT_SIDESLIP])
     raw = {name: np.loadtxt(STANFORD_DIR / f"{name}.txt", max_rows=300)

@@ -24,6 +24,12 @@ def params_dir() -> Path:
     raise FileNotFoundError(f"cannot find the {PACKAGE} params directory (looked in {candidates})")
 
 
+def shared_data_dir(name: str) -> Path:
+    """``../shared/data/<name>`` beside the source checkout: the measured data sets the
+    project works with (each with its README) live there, not in the repository."""
+    return _SOURCE_ROOT.parent / "shared" / "data" / name
+
+
 def params_file(name_or_path: str | Path) -> Path:
     """A params file by path, or by name (``sedan_d_class`` or ``sedan_d_class.yaml``)."""
     path = Path(name_or_path)

@@ -5,7 +5,8 @@ Usage::
     vehicle-estimation stanford [--out DIR] [--data-dir DIR] [--filters ckf,vbackf,aoukf] [--speed none,ref]
                                 [--noise data|paper] [--rows N] [--quiet]
 
-1. Imports the real drive of ``/work/shared/data/stanford_sideslip_2014`` (550 s at 100 Hz,
+1. Imports the real drive of ``../shared/data/stanford_sideslip_2014`` beside the repository
+   (``--data-dir`` gives another place; 550 s at 100 Hz,
    a car driven hard on a track, INS/optical reference) with the import map
    ``params/import_maps/stanford_sideslip_2014.yaml`` into MCAP bags, one per speed source:
 
@@ -203,7 +204,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     ``node_group(params_files, overrides, log_dir)`` builds the node processes (see
     ``cli.cmd_stanford``); ``params_files`` are the layers after the vehicle file.
     """
-    from vehicle_estimation.paths import params_file
+    from vehicle_estimation.paths import params_file, shared_data_dir
     from vehicle_estimation.tools import importer
     from vehicle_estimation.tools.replay import ReplayError, print_stats, replay
     from vehicle_estimation.vehicle import load_vehicle_params
@@ -224,6 +225,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     out.mkdir(parents=True, exist_ok=True)
     vehicle = load_vehicle_params(params_file(VEHICLE))
     base_map, map_path = importer.load_mapping(MAPPING)
+    data_dir = data_dir or str(shared_data_dir(MAPPING))
 
     # ---- import (one bag per speed source) and the arrays the baseline needs
     bags: dict[str, Path] = {}
@@ -314,7 +316,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
         rmse = row["metrics"].get("sideslip", {}).get("rmse", math.nan)
         row["sideslip_rmse_change_percent"] = 100.0 * (rmse - base_rmse) / base_rmse
     result = {
-        "data": str(data_dir or base_map.get("data_dir")), "mapping": str(map_path), "vehicle": VEHICLE,
+        "data": data_dir, "mapping": str(map_path), "vehicle": VEHICLE,
         "samples": int(t.size), "duration_s": float(t[-1] - t[0]), "warmup_s": warmup_s,
         "noise": noise, "noise_std_from_data": noise_std,
         "units": {"sideslip": "deg", "yaw_rate": "deg/s", "vy": "m/s", "vx": "m/s"},
@@ -413,7 +415,8 @@ def plot(series: dict[str, dict], ref: dict, path: Path, t0: float, start: float
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/stanford", help="output directory (default: out/stanford)")
-    p.add_argument("--data-dir", default=None, help="folder of the Stanford text files (default: the import map's)")
+    p.add_argument("--data-dir", default=None, help="folder of the Stanford text files (default: ../shared/data/stanford_sideslip_2014 "
+                        "beside the repository)")
     p.add_argument("--filters", default=",".join(FILTERS),
                    help=f"comma-separated state filters (default: {','.join(FILTERS)})")
     p.add_argument("--speed", default=",".join(SPEED_MODES),
