@@ -178,8 +178,8 @@ def _templates() -> dict:
     }
 
 
-def _stamps(t: np.ndarray):
-    ns = T0_NS + np.round(np.asarray(t) * 1e9).astype(np.int64)
+def _stamps(t: np.ndarray, t0_ns: int):
+    ns = t0_ns + np.round(np.asarray(t) * 1e9).astype(np.int64)
     return ns, ns // 1_000_000_000, ns % 1_000_000_000
 
 
@@ -191,15 +191,16 @@ def _quat_from_rpy(roll, pitch, yaw):
             cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
 
 
-def build_streams(result) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
-    """(topic, msgtype, log times ns, byte matrix) for every topic of the contract."""
+def build_streams(result, t0_ns: int = T0_NS) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """(topic, msgtype, log times ns, byte matrix) for every topic of the contract; stamps are
+    ``t0_ns`` plus the simulation time (0: a bag starting at 0 s, as other simulators write)."""
     tpl = _templates()
     S, TR = result.sensors, result.truth
     streams = []
     nan = float("nan")
 
     imu = S["imu"]
-    ns, sec, nsec = _stamps(imu["t"])
+    ns, sec, nsec = _stamps(imu["t"], t0_ns)
     vals = {"sec": sec, "nsec": nsec, "ocov0": -1.0,
             "wx": imu["gyro"][:, 0], "wy": imu["gyro"][:, 1], "wz": imu["gyro"][:, 2],
             "ax": imu["accel"][:, 0], "ay": imu["accel"][:, 1], "az": imu["accel"][:, 2],
@@ -208,7 +209,7 @@ def build_streams(result) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     streams.append((T.IMU, tpl["imu"].msgtype, ns, tpl["imu"].fill(ns.size, vals)))
 
     gn = S["gnss"]
-    ns, sec, nsec = _stamps(gn["t"])
+    ns, sec, nsec = _stamps(gn["t"], t0_ns)
     cov = gn["cov"]
     vals = {"sec": sec, "nsec": nsec, "status": gn["status"].astype(np.int64), "service": 1,
             "lat": gn["lat"], "lon": gn["lon"], "alt": gn["alt"], "pcovtype": 2,
@@ -216,12 +217,12 @@ def build_streams(result) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     streams.append((T.GNSS, tpl["gnss"].msgtype, ns, tpl["gnss"].fill(ns.size, vals)))
 
     sp = S["speed"]
-    ns, sec, nsec = _stamps(sp["t"])
+    ns, sec, nsec = _stamps(sp["t"], t0_ns)
     vals = {"sec": sec, "nsec": nsec, "lx": sp["v"], "cov0": sp["var"]}
     streams.append((T.SPEED, tpl["twist"].msgtype, ns, tpl["twist"].fill(ns.size, vals)))
 
     js = S["joint_states"]
-    ns, sec, nsec = _stamps(js["t"])
+    ns, sec, nsec = _stamps(js["t"], t0_ns)
     vals = {"sec": sec, "nsec": nsec}
     for i in range(5):
         vals[f"pos{i}"] = js["position"][:, i]
@@ -230,7 +231,7 @@ def build_streams(result) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     streams.append((T.JOINT_STATES, tpl["joints"].msgtype, ns, tpl["joints"].fill(ns.size, vals)))
 
     pt = S["powertrain"]
-    ns, sec, nsec = _stamps(pt["t"])
+    ns, sec, nsec = _stamps(pt["t"], t0_ns)
     vals = {"sec": sec, "nsec": nsec}
     for i in range(4):
         vals[f"pos{i}"] = nan
@@ -241,7 +242,7 @@ def build_streams(result) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     streams.append((T.POWERTRAIN, tpl["powertrain"].msgtype, ns, tpl["powertrain"].fill(ns.size, vals)))
 
     # ground truth (100 Hz)
-    ns, sec, nsec = _stamps(TR["t"])
+    ns, sec, nsec = _stamps(TR["t"], t0_ns)
     n = ns.size
     f64 = tpl["float64"]
     streams.append((T.GT_MASS, f64.msgtype, ns, f64.fill(n, {"data": TR["mass"]})))

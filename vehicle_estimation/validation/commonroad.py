@@ -380,29 +380,12 @@ def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, 
         truth=truth)
 
 
-def _restamp_from_zero(streams):
-    """build_streams stamps at ``T0_NS + t``; our drives start at 0 s: shift the log times and
-    rewrite the header stamps (the ``sec``/``nsec`` fields the templates locate)."""
-    tpl = simbag._templates()
-    offsets = {t.msgtype: (t.fields["sec"][0], t.fields["nsec"][0]) for t in tpl.values() if "sec" in t.fields}
-    out = []
-    for topic, msgtype, ns, rows in streams:
-        if topic == T.POWERTRAIN:
-            continue
-        ns = ns - simbag.T0_NS
-        rows = rows.copy()
-        if msgtype in offsets:
-            so, no = offsets[msgtype]
-            rows[:, so:so + 4] = (ns // 1_000_000_000).astype("<i4").view(np.uint8).reshape(-1, 4)
-            rows[:, no:no + 4] = (ns % 1_000_000_000).astype("<u4").view(np.uint8).reshape(-1, 4)
-        out.append((topic, msgtype, ns, rows))
-    return out
-
-
 def write_drive(result, path: Path) -> Path:
     """Write a :func:`sensor_result` as an MCAP bag at ``path`` (stamps from 0 s)."""
     simbag.check_new_bag_path(path)
-    return simbag.write_streams(_restamp_from_zero(simbag.build_streams(result)), path)
+    # No powertrain: the library's model has none (its stream would be all NaN).
+    streams = [s for s in simbag.build_streams(result, t0_ns=0) if s[0] != T.POWERTRAIN]
+    return simbag.write_streams(streams, path)
 
 
 def effective_rolling_radius(tr: Trajectory, *, wheels: Sequence[int] = (0, 1), min_t: float = 1.0,
