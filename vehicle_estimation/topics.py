@@ -58,6 +58,11 @@ IMU_FRAME = "imu_link"
 GNSS_FRAME = "gnss_link"
 
 
+def relative(topic: str) -> str:
+    """A topic name as the contract writes it: without the leading '/' a bag or a user adds."""
+    return topic.strip().lstrip("/")
+
+
 def parse_remap(text: str) -> tuple[str, str]:
     """``FROM:=TO`` -> ``(FROM, TO)`` as written; ``ValueError`` saying what is malformed."""
     if text.count(":=") != 1:
@@ -78,10 +83,10 @@ def bag_to_contract(remaps, contract_topics) -> dict[str, str]:
     taken too, since one side must be a contract topic: ``/sensors/imu:=imu/data``. A pair
     with no contract topic on either side is a ``ValueError`` that says so.
     """
-    contract = {t.lstrip("/") for t in contract_topics}
+    contract = {relative(t) for t in contract_topics}
     out: dict[str, str] = {}
     for source, target in remaps:
-        a, b = source.lstrip("/"), target.lstrip("/")
+        a, b = relative(source), relative(target)
         if a in contract:
             out[b] = a
         elif b in contract:

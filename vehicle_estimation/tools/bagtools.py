@@ -27,6 +27,7 @@ from rosbags.typesys import Stores
 from rosbags.typesys.base import Nodetype, normalize_fieldname
 from rosbags.typesys.store import Typestore
 
+from vehicle_estimation import topics
 from vehicle_estimation.tools.msgconvert import (
     cached_typestore,
     convert_message,
@@ -45,9 +46,6 @@ def noetic_typestore() -> Typestore:
     return cached_typestore(Stores.ROS1_NOETIC)
 
 
-def _norm(topic: str) -> str:
-    return topic.strip().lstrip("/")
-
 
 def _check_destination(dst: Path, storage: str) -> None:
     if storage not in STORAGES:
@@ -64,7 +62,7 @@ def _check_destination(dst: Path, storage: str) -> None:
 
 def _check_topics(what: str, names: Iterable[str], in_bag: set[str]) -> None:
     # A typo in a topic name would otherwise silently leave the bag unchanged.
-    missing = sorted("/" + _norm(n) for n in names if _norm(n) not in in_bag)
+    missing = sorted("/" + topics.relative(n) for n in names if topics.relative(n) not in in_bag)
     if missing:
         raise ValueError(f"{what}: topic(s) {', '.join(missing)} not in the bag "
                          f"(it has {', '.join('/' + t for t in sorted(in_bag))})")
@@ -153,30 +151,30 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
         raise ValueError(f"start_at_s must be a finite time >= 0 s (ROS time is never negative), got {start_at_s}")
     if duration_s is not None and not (np.isfinite(duration_s) and duration_s > 0.0):
         raise ValueError(f"duration_s must be a finite time > 0 s, got {duration_s}")
-    keep_every = {_norm(t): n for t, n in (keep_every or {}).items()}
+    keep_every = {topics.relative(t): n for t, n in (keep_every or {}).items()}
     for topic, n in keep_every.items():
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:
             raise ValueError(f"keep_every[{topic!r}] must be a whole number >= 1 (keep every n-th message), got {n!r}")
-    rename = {_norm(old): _norm(new) for old, new in (rename or {}).items()}
+    rename = {topics.relative(old): topics.relative(new) for old, new in (rename or {}).items()}
     if any(not new for new in rename.values()):
         raise ValueError(f"rename: an empty new topic name in {rename}")
-    drop_topic_set = {_norm(t) for t in drop_topics}
+    drop_topic_set = {topics.relative(t) for t in drop_topics}
     joints_to_drop = set(drop_joints)
     to_ros1 = storage == "ros1"
     dst_ts = noetic_typestore() if to_ros1 else jazzy_typestore()
 
     with AnyReader([src], default_typestore=jazzy_typestore()) as reader:
         same_family = reader.is2 != to_ros1
-        in_bag = {_norm(c.topic) for c in reader.connections}
+        in_bag = {topics.relative(c.topic) for c in reader.connections}
         _check_topics("drop_topics", drop_topic_set, in_bag)
         _check_topics("keep_every", keep_every, in_bag)
         _check_topics("rename", rename, in_bag)
-        kept = [c for c in reader.connections if _norm(c.topic) not in drop_topic_set]
+        kept = [c for c in reader.connections if topics.relative(c.topic) not in drop_topic_set]
         if not kept:
             raise ValueError(f"{src}: no topic left to write (all of {', '.join(sorted(in_bag))} dropped)")
         out_names: dict[str, str] = {}
         for conn in kept:
-            name = _norm(conn.topic)
+            name = topics.relative(conn.topic)
             out = rename.get(name, name)
             for other, other_out in out_names.items():
                 if other != name and other_out == out:
@@ -197,7 +195,7 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
             by_id: dict[int, Any] = {}
             raw_types: set[str] = set()     # known to the bag only: copied byte for byte
             for conn in kept:
-                topic = "/" + out_names[_norm(conn.topic)]
+                topic = "/" + out_names[topics.relative(conn.topic)]
                 key = (topic, conn.msgtype)
                 if key not in out_conns:
                     conn_ts = dst_ts
@@ -214,7 +212,7 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
             for conn, timestamp, data in reader.messages(connections=kept):
                 if t_stop is not None and timestamp >= t_stop:
                     break
-                name = _norm(conn.topic)
+                name = topics.relative(conn.topic)
                 index = seen[name]
                 seen[name] += 1
                 if index % keep_every.get(name, 1):

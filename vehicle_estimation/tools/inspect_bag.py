@@ -134,9 +134,6 @@ def layered_params(params_files: list[Path]) -> dict[str, dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------------ reading
-def _norm(topic: str) -> str:
-    return topic.lstrip("/")
-
 
 def parse_remaps(items: list[str] | None) -> dict[str, str]:
     """``["FROM:=TO", ...]`` -> ``{FROM: TO}`` as written (see :func:`topics.bag_to_contract`)."""
@@ -234,7 +231,7 @@ def _read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
         contract = {t: _TopicStats(t) for t in topics.INPUT_TOPICS}
         used, others = [], {}
         for conn in reader.connections:
-            name = remaps.get(_norm(conn.topic), _norm(conn.topic))
+            name = remaps.get(topics.relative(conn.topic), topics.relative(conn.topic))
             if name in contract:
                 stats = contract[name]
                 stats.bag_topics.add(conn.topic)
@@ -244,10 +241,10 @@ def _read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
                 entry = others.setdefault(conn.topic, {"topic": conn.topic, "types": set(), "count": 0})
                 entry["types"].add(conn.msgtype)
                 entry["count"] += int(conn.msgcount or 0)
-        totals = {t: sum(int(c.msgcount or 0) for c in used if remaps.get(_norm(c.topic), _norm(c.topic)) == t)
+        totals = {t: sum(int(c.msgcount or 0) for c in used if remaps.get(topics.relative(c.topic), topics.relative(c.topic)) == t)
                   for t in contract}
         every = {t: max(1, math.ceil(totals[t] / MAX_SAMPLES)) for t in contract}
-        by_conn = {c.id: contract[remaps.get(_norm(c.topic), _norm(c.topic))] for c in used}
+        by_conn = {c.id: contract[remaps.get(topics.relative(c.topic), topics.relative(c.topic))] for c in used}
         cdr = {c.id: is2 and getattr(c.ext, "serialization_format", "cdr") == "cdr" for c in used}
         contract_ok = {c.id: c.msgtype == topics.INPUT_TYPES[by_conn[c.id].contract] for c in used}
         for conn, log_ns, raw in reader.messages(connections=used) if used else ():
@@ -568,11 +565,11 @@ def summarize(bag: Path, params_files: list[Path], remaps: dict[str, str]) -> di
     others = []
     missing = [t for t in topics.INPUT_TOPICS if not inputs[t]["present"]]
     for topic, entry in sorted(data["others"].items()):
-        gt = _norm(topic) in topics.GROUND_TRUTH_TOPICS or _norm(topic).startswith("ground_truth/")
+        gt = topics.relative(topic) in topics.GROUND_TRUTH_TOPICS or topics.relative(topic).startswith("ground_truth/")
         hint = None
         if not gt:
             # a missing input under a namespace (/car1/imu/data), or the only topic of its type
-            hint = next((t for t in missing if _norm(topic).endswith("/" + t)), None)
+            hint = next((t for t in missing if topics.relative(topic).endswith("/" + t)), None)
             by_type = [t for t in missing if {topics.INPUT_TYPES[t]} == entry["types"]]
             same = [o for o, e in data["others"].items() if e["types"] == entry["types"]]
             if hint is None and len(by_type) == 1 and len(same) == 1:
@@ -604,7 +601,7 @@ def _format_topic(info: dict[str, Any]) -> list[str]:
     name = info["topic"]
     if not info["present"]:
         return [f"  {name}: MISSING (expected {info['expected_type']})"]
-    shown = ", ".join(t for t in info["bag_topics"] if _norm(t) != name)
+    shown = ", ".join(t for t in info["bag_topics"] if topics.relative(t) != name)
     head = f"  {name}" + (f" (from {shown})" if shown else "") + f": {info['count']} messages, "
     head += ", ".join(info["types"])
     lines = [head]

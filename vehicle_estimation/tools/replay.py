@@ -92,9 +92,6 @@ def msg_class(type_name: str) -> Any:
     return getattr(importlib.import_module(f"{package}.{kind}"), name)
 
 
-def _norm(topic: str) -> str:
-    return topic.lstrip("/")
-
 
 def _topic_plan(connections, remap: dict[str, str], input_topics: set[str],
                 truth_topics: set[str]) -> tuple[dict[int, str], dict[int, str]]:
@@ -103,7 +100,7 @@ def _topic_plan(connections, remap: dict[str, str], input_topics: set[str],
     ``remap``: bag topic -> contract topic (:func:`vehicle_estimation.topics.bag_to_contract`);
     a bag topic that is neither an input nor ground truth (after remapping) is ignored.
     """
-    in_bag = {_norm(c.topic) for c in connections}
+    in_bag = {topics.relative(c.topic) for c in connections}
     for source, target in remap.items():
         if source not in in_bag:
             raise ReplayError(f"--remap {source}:={target}: the bag has no topic {source} "
@@ -112,7 +109,7 @@ def _topic_plan(connections, remap: dict[str, str], input_topics: set[str],
     truth: dict[int, str] = {}
     played_from: dict[str, str] = {}
     for conn in connections:
-        source = _norm(conn.topic)
+        source = topics.relative(conn.topic)
         target = remap.get(source, source)
         if target in input_topics:
             if played_from.setdefault(target, source) != source:
