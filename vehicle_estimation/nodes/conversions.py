@@ -148,6 +148,22 @@ def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
     return (t, (t, v, yaw if math.isfinite(yaw) else math.nan))
 
 
+def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
+    """``(stamp, (stamp, g_y))`` of an Odometry, for a history: the share of gravity on the body
+    y axis, ``R[2, 1] = sin(roll) cos(pitch)`` of the base_link -> ENU ``pose.pose.orientation``.
+
+    A body-fixed accelerometer reads ``g g_y`` on y on top of the lateral acceleration when the
+    body rolls on its suspension or the road is banked."""
+    stamp = msg.header.stamp
+    t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
+    q = msg.pose.pose.orientation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    n = x * x + y * y + z * z + w * w
+    if not (math.isfinite(n) and n > 0.5):
+        return None
+    return t, (t, 2.0 * (y * z + w * x) / n)
+
+
 def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
     """``(stamp, (stamp, vx, vy))`` of a TwistWithCovarianceStamped (the vehicle-state
     node's output), for a history."""

@@ -20,7 +20,8 @@ Shared tuning of ``ckf``/``vbackf`` (Sec. 7.1 defaults): ``p0_diag``, ``q_diag``
 
 Subscribes (sensor-data QoS): ``imu/data`` (measurement [ax, ay, r], the trigger),
 ``vehicle/joint_states`` (steering-wheel angle, four wheel speeds). From other nodes:
-``estimation/imu_bias`` (fusion IMU bias), ``estimation/road_slope_stamped`` and
+``estimation/imu_bias`` (fusion IMU bias), ``estimation/odometry`` (the fusion attitude, for
+``roll_compensation``), ``estimation/road_slope_stamped`` and
 ``estimation/mass_stamped`` (paper 004 Fig. 1: state <- slope, mass). Before the slope or
 mass arrive the filter uses slope 0 and the vehicle's nominal mass, and says so in
 ``/diagnostics``.
@@ -31,6 +32,13 @@ measured longitudinal acceleration instead of the wheel-slip tyre forces (see
 directly (``speed_fallback``), so vx does not drift with the accelerometer bias. Steering missing: the sample is used with the last steering angle
 for at most ``stale_input_s``, then the filter runs on the IMU alone (δ = 0) and
 diagnostics report it.
+
+Body roll: the models take the measured lateral acceleration for tyre force over mass, but a
+body-fixed IMU also reads ``g sin(roll) cos(pitch)`` on y whenever the body rolls on its
+suspension or the road is banked (~0.7 m/s^2 at 4 deg of roll). With ``roll_compensation``
+(on by default) it is removed with the fusion's attitude, which integrates the body's roll
+rate; before the fusion has aligned the samples pass uncorrected, and ``/diagnostics``
+(``roll compensation``) says which.
 
 Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped in
 ``base_link``: linear.x = vx, linear.y = vy, angular.z = yaw rate; covariance rows/cols
@@ -43,6 +51,7 @@ import math
 
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
@@ -56,7 +65,7 @@ from vehicle_estimation.nodes.base import (
     STAMP_TOLERANCE_S, EstimatorNode, FusionImuBias, ParameterError, UpstreamHistory, companion,
     companion_value, run_node, sec_to_stamp)
 from vehicle_estimation.nodes.conversions import (
-    MAX_SPEED, MalformedMessage, chassis_reading, imu_arrays, imu_plausible)
+    MAX_SPEED, MalformedMessage, chassis_reading, imu_arrays, imu_plausible, lateral_gravity_entry)
 
 FILTERS = ("ckf", "vbackf", "aoukf")
 STALE_AFTER_S = 1.0
@@ -107,6 +116,11 @@ class StateNode(EstimatorNode):
         self.speed_fallback = self.declare_bool(
             "speed_fallback", True,
             "Without wheel speeds, update vx with vehicle/speed (else vx is dead-reckoned from ax)")
+        self.roll_compensation = self.declare_bool(
+            "roll_compensation", True,
+            "Remove from the measured lateral acceleration the gravity that the body's roll (on "
+            "its suspension, and the road's bank) puts into it, with the fusion attitude "
+            "(estimation/odometry); without it the tyre model reads g sin(roll) as lateral force")
         self.speed_fallback_std = self.declare_float(
             "speed_fallback_std", 0.3,
             "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
@@ -128,6 +142,8 @@ class StateNode(EstimatorNode):
         self.bias = FusionImuBias()
         self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
         self.mass = UpstreamHistory(lag_s=self.feedback_lag)
+        self.attitude = UpstreamHistory()
+        self.roll_source = "off" if not self.roll_compensation else "none yet (no fusion attitude)"
         self.chassis = None
         self.chassis_t = -math.inf
         self._last_pub = -math.inf
@@ -158,6 +174,8 @@ class StateNode(EstimatorNode):
         if self.speed_fallback:
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         self.subscribe_imu_bias(self.bias)
+        if self.roll_compensation:
+            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.attitude, lateral_gravity_entry)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
         self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
 
@@ -230,6 +248,17 @@ class StateNode(EstimatorNode):
         if fresh and self.core.update_speed(self.speed[1], self.speed[2]):
             self.speed = None
 
+    def _roll_gravity(self, t: float) -> float:
+        """The gravity on the body y axis at ``t`` [m/s^2] (0 without a fresh fusion attitude)."""
+        if not self.roll_compensation:
+            return 0.0
+        item = self.attitude.at(t)
+        if item is None or t - item[0] > STALE_AFTER_S:
+            self.roll_source = "none (no fresh fusion attitude): lateral acceleration uncorrected"
+            return 0.0
+        self.roll_source = "fusion attitude"
+        return self.vehicle.gravity * item[1]
+
     def _upstream(self, history: UpstreamHistory, t: float, default: float, what: str) -> float:
         item = history.at(t)
         missing = item is None or t - item.stamp > STALE_AFTER_S
@@ -275,7 +304,7 @@ class StateNode(EstimatorNode):
         # The filter steps at filter_rate_hz on the mean of the IMU samples since its last step:
         # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
         # measurement of the interval than any one sample.
-        self._z_sum += (f[0], f[1], w[2])
+        self._z_sum += (f[0], f[1] - self._roll_gravity(t), w[2])
         self._z_count += 1
         if self.core.initialised and t - self._last_step_t < 1.0 / self.filter_rate - STAMP_TOLERANCE_S:
             return
@@ -331,6 +360,7 @@ class StateNode(EstimatorNode):
         self.bias.clear()
         self.slope.clear()
         self.mass.clear()
+        self.attitude.clear()
         self.chassis = None
         self.speed = None
         self._first_imu_t = None
@@ -351,6 +381,7 @@ class StateNode(EstimatorNode):
             extra["GA-BPNN correction"] = "on" if self.core.correction is not None else "off"
         extra["filter re-initialisations"] = str(self.core.reinitialisations)
         extra["vx source"] = self.vx_source
+        extra["roll compensation"] = self.roll_source
         return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 
