@@ -106,6 +106,21 @@ def test_drop_joints_keeps_the_arrays_aligned(drive, tmp_path):
             assert _fields(new.header) == _fields(old.header)
 
 
+def test_edit_changes_the_messages_of_one_topic_in_place(drive, tmp_path):
+    def add_index(msg, index):
+        msg.linear_acceleration.y += 0.001 * index
+
+    out = rewrite_bag(drive, tmp_path / "edited", duration_s=1.0, edit={"imu/data": add_index})
+    before, after = _messages(drive, "/imu/data"), _messages(out, "/imu/data")
+    assert len(after) == 200
+    for index, ((_, old), (_, new)) in enumerate(zip(before, after)):
+        assert new.linear_acceleration.y == old.linear_acceleration.y + 0.001 * index
+        assert _fields(new, drop=("linear_acceleration",)) == _fields(old, drop=("linear_acceleration",))
+    assert _fields(_messages(out, "/vehicle/speed")[0][1]) == _fields(_messages(drive, "/vehicle/speed")[0][1])
+    with pytest.raises(ValueError, match="edit"):
+        rewrite_bag(drive, tmp_path / "bad", edit={"no/such_topic": add_index})
+
+
 def test_start_at_zero_shifts_header_stamps_and_log_times(drive, tmp_path):
     out = rewrite_bag(drive, tmp_path / "zero", start_at_s=0.0, duration_s=1.0)
     with AnyReader([drive]) as reader:

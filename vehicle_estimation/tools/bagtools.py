@@ -14,7 +14,7 @@ rosbag2, ROS 1 Noetic for a ``.bag``), edited and serialised again.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -125,7 +125,8 @@ def _drop_joints(msg: Any, drop: set[str], where: str) -> None:
 def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = None,
                 duration_s: float | None = None, drop_topics: Iterable[str] = (),
                 drop_joints: Iterable[str] = (), keep_every: Mapping[str, int] | None = None,
-                rename: Mapping[str, str] | None = None, storage: Storage = "mcap") -> Path:
+                rename: Mapping[str, str] | None = None, storage: Storage = "mcap",
+                edit: Mapping[str, Callable[[Any, int], None]] | None = None) -> Path:
     """Copy the bag ``src`` to a new bag ``dst``, changed as asked; returns ``dst``.
 
     * ``start_at_s``: shift every log time and every header stamp by one offset so that the
@@ -139,6 +140,9 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
     * ``keep_every``: ``{topic: n}`` keeps the 1st, (n+1)-th, ... message of the topic (a
       lower rate: IMU 200 -> 100 Hz is 2, GNSS 10 -> 1 Hz is 10).
     * ``rename``: ``{old: new}`` writes a topic under another name (a recorder's own names).
+    * ``edit``: ``{topic: fn(msg, index)}`` changes each message of the topic in place
+      (deserialised; ``index`` counts the topic's messages in ``src`` from 0): added noise,
+      a sensor fault.
     * ``storage``: ``"mcap"`` or ``"sqlite3"`` (a rosbag2 directory, ROS 2 Jazzy types) or
       ``"ros1"`` (a ``.bag`` file, ROS 1 Noetic types: a Header gets ``seq`` 0).
 
@@ -159,6 +163,7 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
     if any(not new for new in rename.values()):
         raise ValueError(f"rename: an empty new topic name in {rename}")
     drop_topic_set = {topics.relative(t) for t in drop_topics}
+    edits = {topics.relative(t): fn for t, fn in (edit or {}).items()}
     joints_to_drop = set(drop_joints)
     to_ros1 = storage == "ros1"
     dst_ts = noetic_typestore() if to_ros1 else jazzy_typestore()
@@ -169,6 +174,7 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
         _check_topics("drop_topics", drop_topic_set, in_bag)
         _check_topics("keep_every", keep_every, in_bag)
         _check_topics("rename", rename, in_bag)
+        _check_topics("edit", edits, in_bag)
         kept = [c for c in reader.connections if topics.relative(c.topic) not in drop_topic_set]
         if not kept:
             raise ValueError(f"{src}: no topic left to write (all of {', '.join(sorted(in_bag))} dropped)")
@@ -219,6 +225,8 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
                     continue
                 msgtype = conn.msgtype
                 if msgtype in raw_types:
+                    if name in edits:
+                        raise ValueError(f"edit: topic {conn.topic} has type {msgtype}, known to the bag only")
                     if offset_ns != 0 and _has_header(reader.typestore, msgtype, header_cache):
                         raise ValueError(f"topic {conn.topic}: type {msgtype} is known to the bag only, so its "
                                          "header stamps cannot be shifted; drop the topic or leave start_at_s unset")
@@ -226,7 +234,8 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
                 else:
                     edit_joints = bool(joints_to_drop) and msgtype == JOINT_STATE
                     shift = offset_ns != 0 and _has_header(dst_ts, msgtype, header_cache)
-                    if same_family and not (edit_joints or shift):
+                    user_edit = edits.get(name)
+                    if same_family and not (edit_joints or shift or user_edit):
                         payload = bytes(data)
                     else:
                         where = f"topic {conn.topic}, message {index}"
@@ -235,6 +244,8 @@ def rewrite_bag(src: Path | str, dst: Path | str, *, start_at_s: float | None = 
                             _shift_headers(msg, dst_ts, msgtype, offset_ns, where)
                         if edit_joints:
                             _drop_joints(msg, joints_to_drop, where)
+                        if user_edit is not None:
+                            user_edit(msg, index)
                         payload = bytes(dst_ts.serialize_ros1(msg, msgtype) if to_ros1
                                         else dst_ts.serialize_cdr(msg, msgtype))
                 writer.write(by_id[conn.id], timestamp + offset_ns, payload)

@@ -76,6 +76,32 @@ SPEED_MODES: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+def _add_vibration(bags: dict[str, Path], t: np.ndarray, ax: np.ndarray, ay: np.ndarray, std: float,
+                   seed: int, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The same seeded vibration on x, y, z of every bag's IMU and on the baseline's ax, ay."""
+    from vehicle_estimation.sim.noise import VIBRATION_BAND_HZ, band_limited_noise
+    from vehicle_estimation.tools.bagtools import rewrite_bag
+
+    fs = 1.0 / float(np.median(np.diff(t)))
+    vibration = band_limited_noise(np.random.default_rng(seed), t.size, fs, std)
+
+    def shake(msg: Any, index: int) -> None:
+        if index >= len(vibration):
+            raise ValueError(f"{T.IMU}: more messages in the bag than imported IMU samples ({t.size})")
+        a = msg.linear_acceleration
+        a.x, a.y, a.z = a.x + vibration[index, 0], a.y + vibration[index, 1], a.z + vibration[index, 2]
+
+    for speed, bag in list(bags.items()):
+        shaken = bag.with_name(bag.name + "_vibration")
+        if shaken.exists():
+            shutil.rmtree(shaken)
+        bags[speed] = rewrite_bag(bag, shaken, edit={T.IMU: shake})
+        if progress:
+            print(f"[vibration] {bags[speed]}: {std:g} m/s^2, {VIBRATION_BAND_HZ[0]:g} Hz up to "
+                  f"{min(VIBRATION_BAND_HZ[1], 0.45 * fs):.0f} Hz, seed {seed}")
+    return ax + vibration[:, 0], ay + vibration[:, 1]
+
+
 # --------------------------------------------------------------------- baseline
 def highpass_std(x: np.ndarray) -> float:
     """Std of the high-passed signal, as BetaStanfordLinear.m estimates sensor noise.
@@ -198,8 +224,13 @@ def _read_estimates(bag: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_dir: str | None = None,
         filters: list[str] | None = None, speeds: list[str] | None = None, noise: str = "data",
-        rows: int | None = None, warmup_s: float = DEFAULT_WARMUP_S, progress: bool = True) -> dict:
+        rows: int | None = None, warmup_s: float = DEFAULT_WARMUP_S, progress: bool = True,
+        vibration_std: float = 0.0, vibration_seed: int = 0) -> dict:
     """The whole comparison; returns the content of ``comparison.json``.
+
+    ``vibration_std`` > 0 adds band-limited vibration (10-60 Hz, below 45 Hz at this log's
+    100 Hz; that std per axis [m/s^2], seeded) to the accelerometer of every bag and of the baseline alike: the raw IMU of a real
+    car carries several m/s^2 of it (issue "the bag a user brings").
 
     ``node_group(params_files, overrides, log_dir)`` builds the node processes (see
     ``cli.cmd_stanford``); ``params_files`` are the layers after the vehicle file.
@@ -217,6 +248,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     for name in speeds:
         if name not in SPEED_MODES:
             raise ValueError(f"unknown speed source {name!r} (known: {', '.join(SPEED_MODES)})")
+    if not (math.isfinite(vibration_std) and vibration_std >= 0.0):
+        raise ValueError(f"vibration_std must be >= 0, got {vibration_std!r}")
     if noise not in ("data", "paper"):
         raise ValueError(f"noise must be 'data' or 'paper', got {noise!r}")
     for sub in ("bags", "runs"):
@@ -244,6 +277,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     t = sig["imu.angular_velocity.z"].t
     ax = sig["imu.linear_acceleration.x"].values
     ay = sig["imu.linear_acceleration.y"].values
+    if vibration_std > 0.0:
+        ax, ay = _add_vibration(bags, t, ax, ay, vibration_std, vibration_seed, progress)
     r = sig["imu.angular_velocity.z"].values
     delta = np.interp(t, sig[importer.STEERING_KEY].t, sig[importer.STEERING_KEY].values) / vehicle.steering_ratio
     ref = {"vx": (sig["ground_truth.vehicle_state.vx"].t, sig["ground_truth.vehicle_state.vx"].values),
@@ -318,7 +353,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     result = {
         "data": data_dir, "mapping": str(map_path), "vehicle": VEHICLE,
         "samples": int(t.size), "duration_s": float(t[-1] - t[0]), "warmup_s": warmup_s,
-        "noise": noise, "noise_std_from_data": noise_std,
+        "noise": noise, "noise_std_from_data": noise_std, "vibration_std": vibration_std,
         "units": {"sideslip": "deg", "yaw_rate": "deg/s", "vy": "m/s", "vx": "m/s"},
         "rows": rows_out,
         "notes": [
@@ -426,6 +461,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="measurement-noise R of the filters: from the data as the baseline does (default), "
                         "or paper 004's")
     p.add_argument("--rows", type=int, default=None, help="use only the first N samples (quick look)")
+    p.add_argument("--vibration-std", type=float, default=0.0,
+                   help="add 10-60 Hz vibration (up to 45 Hz at 100 Hz) of this std [m/s^2] to the "
+                        "accelerometer, filters and baseline alike")
+    p.add_argument("--vibration-seed", type=int, default=0, help="seed of the vibration")
     p.add_argument("--warmup", type=float, default=DEFAULT_WARMUP_S, help="seconds skipped by the metrics")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -435,7 +474,8 @@ def main(args: argparse.Namespace, node_group: Callable[[list[Path], Any, Path],
         result = run(Path(args.out), node_group, data_dir=args.data_dir,
                      filters=[f for f in args.filters.split(",") if f],
                      speeds=[s for s in args.speed.split(",") if s], noise=args.noise, rows=args.rows,
-                     warmup_s=args.warmup, progress=not args.quiet)
+                     warmup_s=args.warmup, progress=not args.quiet, vibration_std=args.vibration_std,
+                     vibration_seed=args.vibration_seed)
     except (ValueError, RuntimeError) as exc:
         print(f"stanford comparison failed: {exc}", file=sys.stderr)
         return 1

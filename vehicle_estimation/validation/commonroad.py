@@ -61,6 +61,7 @@ import numpy as np
 from .. import topics as T
 from ..core.geodesy import LocalTangentPlane
 from ..sim import bag as simbag
+from ..sim.noise import band_limited_noise
 
 G_MODEL = 9.81                   # the model's gravity constant [m/s^2]
 SIM_RATE_HZ = 1000
@@ -73,7 +74,6 @@ IMU_RATE_HZ, CAN_RATE_HZ, GNSS_RATE_HZ, TRUTH_RATE_HZ = 200, 100, 10, 100
 ACCEL_NOISE, GYRO_NOISE = 0.05, 0.003            # white-noise std [m/s^2], [rad/s]
 ACCEL_BIAS, GYRO_BIAS = 0.05, 0.002              # constant bias magnitude [m/s^2], [rad/s]
 GNSS_NOISE_H, GNSS_NOISE_V = 0.5, 1.0            # [m]
-VIBRATION_BAND_HZ = (10.0, 60.0)
 VEHICLE_NAME = "commonroad_bmw320i"
 #: Lateral conventions of the MB model, read off its equations: its "left" wheels sit at
 #: y = -T/2 (they are the faster ones for r > 0, and a forward force on them yaws the car
@@ -315,13 +315,6 @@ def _every(t: np.ndarray, rate: float) -> np.ndarray:
     return np.arange(0, t.size, step)
 
 
-def _vibration(rng: np.random.Generator, n: int, fs: float, std: float) -> np.ndarray:
-    from scipy import signal
-    sos = signal.butter(4, VIBRATION_BAND_HZ, btype="bandpass", fs=fs, output="sos")
-    w = signal.sosfiltfilt(sos, rng.standard_normal((n, 3)), axis=0)
-    return std * w / np.std(w, axis=0)
-
-
 def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, mass: float | None = None):
     """A :class:`~vehicle_estimation.sim.simulate.SimResult`-like object (``sensors``, ``truth``)
     that :func:`vehicle_estimation.sim.bag.build_streams` accepts."""
@@ -335,7 +328,7 @@ def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, 
     i = _every(t, IMU_RATE_HZ)
     accel = tru["accel"].copy()
     if vibration_std > 0.0:
-        accel += _vibration(rng, n, fs, vibration_std)
+        accel += band_limited_noise(rng, n, fs, vibration_std)
     gyro = np.column_stack([tru["wx"], tru["wy"], tru["wz"]])
     a_bias = ACCEL_BIAS * rng.choice([-1.0, 1.0], 3)
     g_bias = GYRO_BIAS * rng.choice([-1.0, 1.0], 3)
