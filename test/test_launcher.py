@@ -1,4 +1,4 @@
-"""The launcher: `run` starts every node and stops them all; `replay` reads sqlite3 bags too."""
+"""The launcher: `run` starts every node and stops them all (sqlite3 replays: test_any_bag)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,8 @@ import time
 from pathlib import Path
 
 import pytest
-from rosbags.highlevel import AnyReader
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
 
 from vehicle_estimation.nodes import PIPELINE
-from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
 
 def _children(pid: int) -> list[int]:
@@ -64,25 +60,3 @@ def test_run_starts_every_node_and_stops_them_all(sig):
         time.sleep(0.1)
     assert not any(_alive(c) for c in children), "orphan node processes left behind"
 
-
-def test_replay_reads_a_sqlite3_bag(tmp_path):
-    mcap = tmp_path / "drive_mcap"
-    write_bag(simulate(scenario_by_name("short")), mcap)
-    sqlite = tmp_path / "drive_sqlite"
-    typestore = get_typestore(Stores.ROS2_JAZZY)
-    with AnyReader([mcap], default_typestore=typestore) as reader, \
-            Writer(sqlite, version=8, storage_plugin=StoragePlugin.SQLITE3) as writer:
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=typestore) for c in reader.connections}
-        end = reader.start_time + 20 * 10**9  # the first 20 s are enough
-        for conn, timestamp, data in reader.messages():
-            if timestamp < end:
-                writer.write(conns[conn.id], timestamp, data)
-    out = tmp_path / "estimates"
-    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(sqlite),
-                           "--record", str(out), "--quiet"], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "lossless: True" in proc.stdout
-    with AnyReader([out]) as reader:
-        counts = {c.topic: c.msgcount for c in reader.connections}
-    assert counts.get("/estimation/odometry", 0) > 100
-    assert counts.get("/estimation/mass", 0) > 10

@@ -100,7 +100,9 @@ def _replay_killing(bag: Path, out: Path, victims: list[tuple[str, float]], tmp:
         assert len(pids) == 1, _children(proc.pid)
         os.kill(pids[0], signal.SIGKILL)
         path.touch()
-    stdout, _ = proc.communicate(timeout=600)
+    # Not communicate(): it would read stderr too, racing the reader thread for its lines.
+    stdout = proc.stdout.read()
+    proc.wait(timeout=600)
     reader.join(timeout=10)
     return proc.returncode, stdout.decode(), "\n".join(err)
 

@@ -167,26 +167,30 @@ class SlopeNode(EstimatorNode):
             self.reject("imu:implausible")
             return
         grade_usable = False
+        fresh_grade = None
         if self.grade_core is not None:
             item = self.grade.at(t)
             missing = item is None or t - item.stamp > STALE_AFTER_S
             # With auto the observer takes over: a fallback, not a missing input.
             self.set_missing("fusion road grade", missing and self.method == "fusion_pitch")
-            if not missing:
-                grade = item.value - self.squat.update(t, float(f[0]) - self.vehicle.gravity * math.sin(item.value))
-                if not self.grade_core.step(t, grade, item.variance):
-                    self.reject("slope:rejected_by_core")
-                grade_usable = item.converged and self.grade_core.converged
+            fresh_grade = None if missing else item
         if self.observer is not None:
             f, w = self.bias.correct(t, f, w)
+        # The body's pitch on its suspension (one filter step per IMU sample), driven by the
+        # acceleration less gravity along the best slope known now: it tilts both the fusion
+        # pitch and the accelerometer, so both sources take it out to get the road's grade.
+        reference = (fresh_grade.value if fresh_grade is not None
+                     else self.observer.slope if self.observer is not None else 0.0)
+        squat = self.squat.update(t, float(f[0]) - self.vehicle.gravity * math.sin(reference))
+        if fresh_grade is not None:
+            if not self.grade_core.step(t, fresh_grade.value - squat, fresh_grade.variance):
+                self.reject("slope:rejected_by_core")
+            grade_usable = fresh_grade.converged and self.grade_core.converged
+        if self.observer is not None:
             velocity = self.velocity_at(t)
             self.set_missing("vehicle speed", velocity is None)
-            # Eq. 21: a_x,acc = vx' - r vy + g theta (the observer adds r vy back). The body's
-            # pitch on its suspension tilts the accelerometer too: take it out, as for the
-            # fusion grade, so that theta is the road's.
-            ax = float(f[0])
-            squat = self.squat.update(t, ax - self.vehicle.gravity * math.sin(self.observer.slope))
-            ax -= self.vehicle.gravity * math.sin(squat)
+            # Eq. 21: a_x,acc = vx' - r vy + g theta (the observer adds r vy back).
+            ax = float(f[0]) - self.vehicle.gravity * math.sin(squat)
             if velocity is not None and not self.observer.step(t, ax, velocity[0],
                                                                yaw_rate=float(w[2]), vy=velocity[1]):
                 self.reject("slope:rejected_by_core")
