@@ -20,6 +20,7 @@ from rosharness import Harness, init_rclpy, sec_to_time, vehicle_overrides
 from vehicle_estimation import topics
 from vehicle_estimation.core.geodesy import LocalTangentPlane
 from vehicle_estimation.nodes.fusion_node import FusionNode
+from vehicle_estimation.nodes.base import companion
 from vehicle_estimation.nodes.mass_node import MassNode
 from vehicle_estimation.nodes.slope_node import SlopeNode
 from vehicle_estimation.nodes.state_node import StateNode
@@ -240,17 +241,21 @@ def test_state_node_estimates_speed_from_wheels_and_imu(filter_name):
 @pytest.mark.parametrize("fallback", [True, False])
 def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
     """No wheel speeds, an accelerometer biased by +0.3 m/s^2 at a steady 20 m/s: the CAN speed
-    holds vx; without it vx is dead-reckoned and drifts with the bias (~3 m/s in 10 s)."""
+    holds vx; without it vx is dead-reckoned and drifts with the bias (~3 m/s in 10 s), and the
+    sideslip that rests on it is never published as converged."""
     node = StateNode(parameter_overrides=vehicle_overrides() + [
         Parameter("speed_fallback", value=fallback), Parameter("initial_vx", value=20.0)])
     h = Harness(node)
     try:
-        topics_in = [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)]
+        # Slope and mass upstream too: a missing one alone makes the sideslip unconverged.
+        topics_in = [(Imu, topics.IMU), (JointState, topics.JOINT_STATES),
+                     (Vector3Stamped, topics.ROAD_SLOPE_STAMPED), (Vector3Stamped, topics.MASS_STAMPED)]
         if fallback:
             topics_in.append((TwistWithCovarianceStamped, topics.SPEED))
         for msg_type, topic in topics_in:
             h.probe.publisher_for(msg_type, topic)
         state = h.probe.watch(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
+        sideslip = h.probe.watch(Vector3Stamped, topics.SIDESLIP_STAMPED)
         h.connect([topic for _, topic in topics_in])
         stream = []
         for i in range(2000):
@@ -263,15 +268,22 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
                 stream.append((topics.JOINT_STATES, js))
                 if fallback:
                     stream.append((topics.SPEED, speed_msg(ti, 20.0)))
+            if i % 10 == 0:
+                stream.append((topics.ROAD_SLOPE_STAMPED, companion(ti, 0.0, 1e-6, True)))
+                stream.append((topics.MASS_STAMPED, companion(ti, 1500.0, 100.0, True)))
             stream.append((topics.IMU, imu_msg(ti, [0.3, 0.0, G], [0, 0, 0])))
         h.publish_stream(stream)
         assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 9)
         vx = state[-1].twist.twist.linear.x
+        assert h.wait_for(lambda: len(sideslip) > 100)
+        converged = [m.vector.z > 0.5 for m in sideslip[-50:]]
         if fallback:
             assert vx == pytest.approx(20.0, abs=0.3)
             assert node.core.speed_updates > 500
+            assert all(converged), (node._missing, node.vx_source)
         else:
             assert vx > 22.0        # the drift the fallback removes
+            assert not any(converged)
     finally:
         h.close()
 

@@ -146,9 +146,11 @@ class StateNode(EstimatorNode):
         self.roll_source = "off" if not self.roll_compensation else "none yet (no fusion attitude)"
         self.chassis = None
         self.chassis_t = -math.inf
+        self.speed_t = -math.inf      # stamp of the last vehicle/speed sample
         self._last_pub = -math.inf
         self._steer = 0.0
         self._first_imu_t: float | None = None
+        self._vx_measured = False     # by wheel speeds or vehicle/speed at the last filter step
         self._z_sum = np.zeros(3)
         self._z_count = 0
         self._last_step_t = -math.inf
@@ -235,6 +237,7 @@ class StateNode(EstimatorNode):
         if not (math.isfinite(var) and var > 0.0):
             var = self.speed_fallback_std ** 2
         self.speed = (t, v, var)
+        self.speed_t = t
 
     def _update_speed_fallback(self, t: float, wheels: np.ndarray) -> None:
         """vx from vehicle/speed when the wheel speeds are missing (each sample used once)."""
@@ -242,10 +245,12 @@ class StateNode(EstimatorNode):
             self.vx_source = VX_FROM_WHEELS
             self.set_missing("wheel speeds and vehicle/speed", False)
             return
-        fresh = self.speed is not None and t - self.speed[0] <= self.stale_input_s
+        # The source is judged by the last sample's age, not by whether a sample is still
+        # unused: at a CAN rate below the filter's there are steps with none, by design.
+        fresh = t - self.speed_t <= self.stale_input_s
         self.vx_source = VX_FROM_SPEED if fresh else VX_DEAD_RECKONED
-        self.set_missing("wheel speeds and vehicle/speed", self.speed is not None and not fresh)
-        if fresh and self.core.update_speed(self.speed[1], self.speed[2]):
+        self.set_missing("wheel speeds and vehicle/speed", math.isfinite(self.speed_t) and not fresh)
+        if fresh and self.speed is not None and self.core.update_speed(self.speed[1], self.speed[2]):
             self.speed = None
 
     def _roll_gravity(self, t: float) -> float:
@@ -319,6 +324,9 @@ class StateNode(EstimatorNode):
             self.note_event(f"vehicle-state filter {self.core.last_event}")
         if self.speed_fallback:
             self._update_speed_fallback(t, wheels)
+        # Without a speed measurement vx integrates the accelerometer and drifts without bound,
+        # and the sideslip with it: still published, never as converged.
+        self._vx_measured = bool(np.all(np.isfinite(wheels[2:]))) or self.vx_source == VX_FROM_SPEED
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_state(t)
@@ -345,7 +353,7 @@ class StateNode(EstimatorNode):
         self.publish(self.pub_state, msg)
         if abs(x[0]) >= self.min_dynamic_speed:
             beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
-            converged = not self._missing
+            converged = not self._missing and self._vx_measured
         else:
             # Below the speed where the tyre model means anything (the core regularises slip
             # below ~3 m/s) the sideslip is kinematic: no tyre slip, beta = atan(lr tan(delta) / L).
@@ -363,7 +371,9 @@ class StateNode(EstimatorNode):
         self.attitude.clear()
         self.chassis = None
         self.speed = None
+        self.speed_t = -math.inf
         self._first_imu_t = None
+        self._vx_measured = False
         self._last_pub = -math.inf
         self._z_sum[:] = 0.0
         self._z_count = 0
