@@ -15,6 +15,9 @@ Subcommands::
                                                         column logs (CSV/text) -> contract bag
     vehicle-estimation stanford [--out DIR]             real Stanford drive: state filters vs
                                                         the linear single-track KF baseline
+    vehicle-estimation validate [--out DIR] [--cases commonroad,fastsim,sim] [--quick]
+                                                        every estimator vs a textbook baseline,
+                                                        on drives our simulator did not make
     vehicle-estimation params [--write|--check README.md] the parameter reference of every node
     vehicle-estimation bench [--sections cores,pipeline,live] [--minutes 30]
                                                         speed and memory figures (a table)
@@ -214,6 +217,16 @@ def cmd_stanford(args: argparse.Namespace) -> int:
 
 
 #: Subcommands that are one tool module each (``add_arguments(parser)`` and ``main(args)``).
+def cmd_validate(args: argparse.Namespace) -> int:
+    from vehicle_estimation.tools.processes import NodeGroup
+    from vehicle_estimation.validation import validate
+
+    def node_group(params, overrides, log_dir):
+        return NodeGroup(list(params), namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir)
+
+    return validate.main(args, node_group)
+
+
 TOOL_COMMANDS = {
     "paper000": ("paper000", "paper 000: TA-AEKF vs EKF, MLP, LSTM and transformer (Tables 2-4, 6)"),
     "paper002": ("paper002", "paper 002: EKF, UKF, anti-outlier UKF (+ GA-BPNN) on outliers (Table 2)"),
@@ -276,6 +289,12 @@ def build_parser() -> argparse.ArgumentParser:
     stanford_arguments(p)
     p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
 
+    p = sub.add_parser("validate", help="every estimator vs a textbook baseline, through the nodes, on "
+                                        "drives our simulator did not make (a table of ratios)")
+    from vehicle_estimation.validation.validate import add_arguments as validate_arguments
+    validate_arguments(p)
+    p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
+
     p = sub.add_parser("bench", help="speed and memory figures: cores, pipeline replay, live (a table)")
     from vehicle_estimation.tools.bench import add_arguments as bench_arguments
     bench_arguments(p)
@@ -298,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
         return paramdoc.main(argv[1:])
     args = build_parser().parse_args(argv)
     commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
-                "experiment": cmd_experiment, "stanford": cmd_stanford, "bench": cmd_bench}
+                "experiment": cmd_experiment, "stanford": cmd_stanford, "bench": cmd_bench,
+                "validate": cmd_validate}
     if args.command in TOOL_COMMANDS:
         return importlib.import_module(f"vehicle_estimation.tools.{TOOL_COMMANDS[args.command][0]}").main(args)
     return commands[args.command](args)

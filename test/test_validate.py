@@ -1,0 +1,81 @@
+"""The textbook baselines of ``validate`` on synthetic arrays, and the command end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from vehicle_estimation.paths import params_file
+from vehicle_estimation.validation import baselines
+from vehicle_estimation.vehicle import load_vehicle_params
+
+VEHICLE = load_vehicle_params(params_file("sedan_d_class"))
+G = VEHICLE.gravity
+
+
+def _hill_drive(seed: int = 0, duration: float = 300.0):
+    """Exact longitudinal signals of a drive over hills: speed, f_x, drive force, grade."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration, 0.01)
+    grade = 0.05 * np.sin(2 * np.pi * t / 90.0) + 0.02 * np.sin(2 * np.pi * t / 37.0)
+    v = 15.0 + 5.0 * np.sin(2 * np.pi * t / 60.0)
+    a = np.gradient(v, t)
+    fx = a + G * np.sin(grade)
+    p = VEHICLE
+    force = ((p.mass + p.wheel_inertia / p.wheel_radius ** 2) * a
+             + p.mass * G * (np.sin(grade) + p.rolling_resistance * np.cos(grade))
+             + 0.5 * p.air_density * p.drag_area * v ** 2)
+    return t, v, fx + 0.05 * rng.standard_normal(t.size), force, grade
+
+
+def test_kinematic_grade_recovers_a_hill_profile():
+    t, v, fx, _, grade = _hill_drive()
+    tk, gk = baselines.kinematic_grade(t, fx, t, v, gravity=G)
+    sel = tk > 20.0
+    err = gk[sel] - np.interp(tk[sel], t, grade)
+    # Causal: a lag of a few tenths of a second on a grade that changes over tens of seconds.
+    assert math.degrees(np.sqrt(np.mean(err ** 2))) < 0.2
+    # ... and it is not trivially right: with the speed derivative ignored it is far off.
+    tk0, gk0 = baselines.kinematic_grade(t, fx, t, np.full_like(v, 15.0), gravity=G)
+    err0 = gk0[tk0 > 20.0] - np.interp(tk0[tk0 > 20.0], t, grade)
+    assert math.degrees(np.sqrt(np.mean(err0 ** 2))) > 1.0
+
+
+def test_batch_ls_mass_is_exact_on_exact_data_and_biased_by_a_wrong_grade():
+    t, v, _, force, grade = _hill_drive()
+    est = baselines.batch_ls_mass(t, force, t, v, t, grade, VEHICLE)
+    assert est["samples"] > 1000
+    assert est["mass"] == pytest.approx(VEHICLE.mass, rel=0.005)
+    level = baselines.batch_ls_mass(t, force, t, v, t, np.zeros_like(grade), VEHICLE)
+    assert abs(level["mass"] / VEHICLE.mass - 1.0) > 0.05      # the grade matters
+    none = baselines.batch_ls_mass(t, np.full_like(force, np.nan), t, v, t, grade, VEHICLE)
+    assert math.isnan(none["mass"]) and none["samples"] == 0
+
+
+def test_validate_command_end_to_end(tmp_path):
+    """A CommonRoad lane change (lateral) and our short hilly drive (longitudinal) through the
+    nodes: every row has our figures, the baseline's and the ratio; plots and JSON written."""
+    out = tmp_path / "validate"
+    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "validate", "--quick", "--cases",
+                           "commonroad,sim", "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    result = json.loads((out / "validation.json").read_text())
+    assert all(c["lossless"] for c in result["cases"])
+    rows = {(r["case"], r["quantity"]): r for r in result["rows"]}
+    for key in (("commonroad_dlc", "sideslip"), ("commonroad_dlc", "vy"), ("sim_hills", "slope"),
+                ("sim_hills", "mass (last half)")):
+        assert key in rows, sorted(rows)
+        row = rows[key]
+        assert math.isfinite(row["ours"]["rmse"]) and math.isfinite(row["base"]["rmse"]), row
+        assert row["ratio"] == pytest.approx(row["ours"]["rmse"] / row["base"]["rmse"])
+    assert rows[("sim_hills", "slope")]["independent"] is False
+    assert rows[("commonroad_dlc", "sideslip")]["ours"]["rmse"] < 1.0      # degrees: no divergence
+    assert "| commonroad_dlc | sideslip [deg]" in (out / "validation.md").read_text()
+    assert (out / "commonroad_dlc.png").stat().st_size > 10_000
+    assert (out / "sim_hills.png").stat().st_size > 10_000

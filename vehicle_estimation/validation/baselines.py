@@ -1,0 +1,93 @@
+"""Textbook baselines for the longitudinal estimators, run offline on a bag's arrays.
+
+Every figure of ``validate`` is a ratio to one of these, computed in the same run on the same
+data, so that a number says how much better (or worse) than the obvious method an estimator is:
+
+* :func:`kinematic_grade`: the road grade from the accelerometer and the speed alone,
+  ``theta = asin((f_x - dv/dt) / g)`` (the IMU's specific force less the vehicle's own
+  acceleration is the gravity along the road), low-passed by a causal second-order
+  Butterworth filter so that it is an *online* method like ours. No bias estimate, no model.
+* :func:`batch_ls_mass`: the least-squares mass over the whole drive from Newton's law along
+  the road, ``F_drive - F_aero = (m + I_w / R^2) a + m g (sin theta + C_r cos theta)``, on
+  the driving samples (drive force and speed above thresholds). Given the true grade it is the
+  best an estimator on these signals can do with the vehicle file's resistances; given our
+  published slope, it says how much of our mass error the slope causes.
+
+The vehicle's lateral baseline (a linear single-track KF) is
+:func:`vehicle_estimation.tools.stanford.baseline_linear_kf`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import signal
+
+from ..vehicle import VehicleParams
+
+#: Corner of the kinematic grade's low-pass [Hz]: the accelerometer's vibration and the
+#: differentiated speed's quantisation are far above it, a road's grade changes below it.
+KINEMATIC_GRADE_CUTOFF_HZ = 0.3
+#: Driving samples for the batch mass: enough force and speed that the drive force dominates
+#: the resistances the vehicle file can only approximate.
+MIN_DRIVE_FORCE_N = 300.0
+MIN_SPEED_MS = 3.0
+#: The speed's derivative is taken after this low-pass, like any estimator would [Hz].
+SPEED_DERIVATIVE_CUTOFF_HZ = 1.0
+
+
+def _uniform(t: np.ndarray, y: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    grid = np.arange(t[0], t[-1], 1.0 / rate_hz)
+    return grid, np.interp(grid, t, y)
+
+
+def _lowpass(y: np.ndarray, rate_hz: float, cutoff_hz: float, *, causal: bool) -> np.ndarray:
+    sos = signal.butter(2, cutoff_hz, fs=rate_hz, output="sos")
+    if causal:
+        return signal.sosfilt(sos, y, zi=signal.sosfilt_zi(sos) * y[0])[0]
+    return signal.sosfiltfilt(sos, y)
+
+
+def speed_derivative(t: np.ndarray, v: np.ndarray, rate_hz: float = 50.0, *, causal: bool = True
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(grid, low-passed speed, its derivative) on a uniform ``rate_hz`` grid."""
+    grid, vu = _uniform(t, v, rate_hz)
+    vs = _lowpass(vu, rate_hz, SPEED_DERIVATIVE_CUTOFF_HZ, causal=causal)
+    return grid, vs, np.gradient(vs, 1.0 / rate_hz)
+
+
+def kinematic_grade(imu_t: np.ndarray, fx: np.ndarray, speed_t: np.ndarray, speed: np.ndarray, *,
+                    gravity: float = 9.80665, rate_hz: float = 50.0,
+                    cutoff_hz: float = KINEMATIC_GRADE_CUTOFF_HZ) -> tuple[np.ndarray, np.ndarray]:
+    """(t, grade [rad]) from the longitudinal specific force and the speed, causal."""
+    grid, _, dv = speed_derivative(speed_t, speed, rate_hz)
+    # The same low-pass on f_x as on v, so that the two are compared at the same delay.
+    f = _lowpass(np.interp(grid, imu_t, fx), rate_hz, SPEED_DERIVATIVE_CUTOFF_HZ, causal=True)
+    raw = np.arcsin(np.clip((f - dv) / gravity, -1.0, 1.0))
+    return grid, _lowpass(raw, rate_hz, cutoff_hz, causal=True)
+
+
+def batch_ls_mass(force_t: np.ndarray, drive_force: np.ndarray, speed_t: np.ndarray, speed: np.ndarray,
+                  grade_t: np.ndarray, grade: np.ndarray, vehicle: VehicleParams, *,
+                  rate_hz: float = 20.0) -> dict[str, float]:
+    """Least-squares mass over a whole drive; ``{"mass", "samples"}`` (NaN without samples).
+
+    Offline, so the speed's derivative is zero-phase. The wheels' inertia is a known
+    equivalent mass ``I_w / R^2``; the engine's (gear dependent) is left out, as in the
+    textbook form: it is part of what the baseline gets wrong.
+    """
+    grid, v, a = speed_derivative(speed_t, speed, rate_hz, causal=False)
+    ok_force = np.isfinite(drive_force)
+    if ok_force.sum() < 2:
+        return {"mass": math.nan, "samples": 0}
+    force = np.interp(grid, force_t[ok_force], drive_force[ok_force])
+    theta = np.interp(grid, grade_t, grade)
+    p = vehicle
+    rotating = p.wheel_inertia / p.wheel_radius ** 2
+    y = force - 0.5 * p.air_density * p.drag_area * v * np.abs(v) - rotating * a
+    phi = a + p.gravity * (np.sin(theta) + p.rolling_resistance * np.cos(theta))
+    use = (force > MIN_DRIVE_FORCE_N) & (v > MIN_SPEED_MS) & np.isfinite(y) & np.isfinite(phi)
+    if use.sum() < 10:
+        return {"mass": math.nan, "samples": int(use.sum())}
+    return {"mass": float(np.sum(phi[use] * y[use]) / np.sum(phi[use] ** 2)), "samples": int(use.sum())}

@@ -1,0 +1,360 @@
+"""``vehicle-estimation validate``: every estimator against a textbook baseline, through the nodes,
+on drives that our simulator did not make.
+
+Each case is a bag in our topic contract, made here from a public source, replayed through the
+four node processes with the shipped ``params/estimation.yaml`` and the case's vehicle file.
+The recorded estimates are scored against the bag's ground truth, and so is the case's textbook
+baseline, computed offline on the same bag in the same run; the table's ``ratio`` is ours /
+the baseline's RMSE (below 1: ours is better).
+
+Cases (``--cases``; default: all that can be made here):
+
+* ``commonroad_<manoeuvre>`` and ``commonroad_<manoeuvre>_vib4``: lane change, slalom and step
+  steer of the CommonRoad multi-body BMW 320i (:mod:`.commonroad`), clean and with 4 m/s² of
+  10-60 Hz IMU vibration. Lateral: sideslip and vy against the linear single-track KF
+  (:func:`vehicle_estimation.tools.stanford.baseline_linear_kf`, given the vehicle file's
+  cornering stiffnesses and the CAN speed).
+* ``fastsim_hills`` and its variants without GNSS and without wheel speeds, when FASTSim is
+  installed (:mod:`.fastsim_drive`). Longitudinal: slope against the causal kinematic grade,
+  mass against the offline batch least squares over the whole drive (:mod:`.baselines`).
+* ``sim_hills``: *our own* simulator's hilly drive, labelled as such: the filters share its
+  model, so it is a reference row, not evidence.
+
+The real Stanford drive has its own command, ``vehicle-estimation stanford`` (the same kind of
+table, with its raw and vibration variants).
+
+Output in ``--out`` (default ``out/validate``): ``validation.json`` (every row, the commands'
+settings), ``validation.md`` (the table), one plot per case, and the bags and recorded
+estimates under ``bags/`` and ``runs/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import topics as T
+from ..paths import params_file
+from ..tools import metrics
+from ..vehicle import VehicleParams, load_vehicle_params
+from . import baselines
+
+DEFAULT_OUT = Path("out") / "validate"
+#: Metrics start after this much of each drive: filters and baselines alike start from nothing.
+WARMUP_S = 5.0
+#: The mass is scored over the last half of the drive, as every mass figure of this package.
+MASS_FROM_FRACTION = 0.5
+
+
+@dataclass
+class Case:
+    name: str
+    source: str                 # who made the data
+    bag: Path
+    vehicle: Path
+    kinds: tuple[str, ...]      # "lateral", "longitudinal"
+    independent: bool = True    # False: our own simulator
+    notes: list[str] = field(default_factory=list)
+
+
+# ------------------------------------------------------------------------------------ cases
+def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
+    from . import commonroad
+
+    manoeuvres = ["dlc"] if quick else list(commonroad.MANOEUVRES)
+    duration = 14.0 if quick else None
+    cases = []
+    for vibration, suffix in ((0.0, ""), (4.0, "_vib4")):
+        if quick and vibration:
+            continue
+        folder = root / f"commonroad{suffix}"
+        paths = [folder / f"commonroad_{m}" for m in manoeuvres]
+        if not all(p.exists() for p in paths):
+            paths = commonroad.generate(folder, vibration_std=vibration, manoeuvres=manoeuvres, duration=duration)
+        vehicle = folder / f"{commonroad.VEHICLE_NAME}.yaml"
+        for name, bag in zip(manoeuvres, paths):
+            cases.append(Case(f"commonroad_{name}{suffix}", "CommonRoad MB model 3.0.2 (BMW 320i)", bag,
+                              vehicle, ("lateral",),
+                              notes=[f"IMU vibration {vibration:g} m/s^2 (10-60 Hz)"] if vibration else []))
+    return cases
+
+
+def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
+    try:
+        from . import fastsim_drive
+    except ImportError:
+        return []
+    try:
+        paths = fastsim_drive.generate(root / "fastsim", duration=120.0 if quick else None)
+    except ImportError as exc:          # the module is there, the library is not
+        print(f"[validate] no FASTSim cases: {exc}")
+        return []
+    vehicle = fastsim_drive.vehicle_file(root / "fastsim")
+    return [Case(Path(p).name, fastsim_drive.SOURCE, Path(p), vehicle, ("longitudinal",)) for p in paths]
+
+
+def _sim_cases(root: Path, *, quick: bool) -> list[Case]:
+    from ..sim import scenario_by_name, simulate, write_bag
+
+    bag = root / "sim" / "sim_hills"
+    if not bag.exists():
+        bag.parent.mkdir(parents=True, exist_ok=True)
+        scenario = scenario_by_name("short" if quick else "demo")
+        write_bag(simulate(scenario), bag)
+    return [Case("sim_hills", "vehicle_estimation.sim (ours: the filters share its model)", bag,
+                 params_file("sedan_d_class"), ("longitudinal", "lateral"), independent=False)]
+
+
+CASE_BUILDERS: dict[str, Callable[..., list[Case]]] = {
+    "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "sim": _sim_cases}
+
+
+# ------------------------------------------------------------------------------------ scoring
+def _errors(t_est, y_est, t_true, y_true, start: float, mode: str = "linear"):
+    t, e, r = metrics.align(t_est, y_est, t_true, y_true, mode=mode)
+    sel = t >= start
+    return t[sel], e[sel], r[sel]
+
+
+def _row(case: Case, quantity: str, unit: str, estimator: str, baseline: str,
+         ours: tuple[np.ndarray, np.ndarray], base: tuple[np.ndarray, np.ndarray] | None,
+         scale: float = 1.0, extra: dict | None = None) -> dict[str, Any]:
+    def stats(pair):
+        est, true = pair
+        if est.size == 0:
+            return {"mae": math.nan, "rmse": math.nan, "max_abs_error": math.nan}
+        return {"mae": scale * metrics.mae(est, true), "rmse": scale * metrics.rmse(est, true),
+                "max_abs_error": scale * float(np.max(np.abs(est - true)))}
+
+    mine = stats(ours)
+    theirs = stats(base) if base is not None else {"mae": math.nan, "rmse": math.nan, "max_abs_error": math.nan}
+    ratio = mine["rmse"] / theirs["rmse"] if theirs["rmse"] > 0 else math.nan
+    return {"case": case.name, "independent": case.independent, "quantity": quantity, "unit": unit,
+            "estimator": estimator, "baseline": baseline, "ours": mine, "base": theirs, "ratio": ratio,
+            **(extra or {})}
+
+
+def _read_estimates(bag: Path) -> dict:
+    from ..tools.report import read_bag
+    return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.GT_MASS, T.GT_ROAD_SLOPE])
+
+
+def lateral_rows(case: Case, estimates: Path, vehicle: VehicleParams, filter_name: str) -> tuple[list, dict]:
+    from . import lateral
+
+    drive = lateral.read_drive(case.bag)
+    truth = drive["truth"]
+    base = lateral.run_baseline(drive, vehicle)
+    est = _read_estimates(estimates)
+    start = float(truth["t"][0]) + WARMUP_S
+    rows, series = [], {"truth_sideslip": (truth["sideslip_t"], truth["sideslip"]),
+                        "base_sideslip": (base["t"], base["sideslip"])}
+    beta = est.get(T.SIDESLIP)
+    state = est.get(T.VEHICLE_STATE)
+    name = f"vehicle_state ({filter_name})"
+    if beta is not None:
+        series["ours_sideslip"] = (beta["t"], beta["value"])
+        rows.append(_row(case, "sideslip", "deg", name, "linear single-track KF",
+                         _errors(beta["t"], beta["value"], truth["sideslip_t"], truth["sideslip"], start)[1:],
+                         _errors(base["t"], base["sideslip"], truth["sideslip_t"], truth["sideslip"], start)[1:],
+                         scale=180.0 / math.pi))
+    if state is not None:
+        rows.append(_row(case, "vy", "m/s", name, "linear single-track KF",
+                         _errors(state["t"], state["vy"], truth["t"], truth["vy"], start)[1:],
+                         _errors(base["t"], base["vy"], truth["t"], truth["vy"], start)[1:]))
+    return rows, series
+
+
+def _read_longitudinal_inputs(bag: Path) -> dict[str, np.ndarray]:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    imu, speed, force = [], [], []
+    want = {T.IMU, T.SPEED, T.POWERTRAIN}
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        conns = [c for c in reader.connections if c.topic.lstrip("/") in want]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            topic = conn.topic.lstrip("/")
+            if topic == T.IMU:
+                imu.append((t, msg.linear_acceleration.x))
+            elif topic == T.SPEED:
+                speed.append((t, msg.twist.twist.linear.x))
+            else:
+                effort = dict(zip(msg.name, msg.effort))
+                force.append((t, effort.get(T.DRIVE_JOINT, math.nan)))
+    empty = np.zeros((0, 2))
+    imu_a, speed_a, force_a = (np.array(x, dtype=float) if x else empty for x in (imu, speed, force))
+    return {"imu_t": imu_a[:, 0], "fx": imu_a[:, 1], "speed_t": speed_a[:, 0], "speed": speed_a[:, 1],
+            "force_t": force_a[:, 0], "force": force_a[:, 1]}
+
+
+def longitudinal_rows(case: Case, estimates: Path, vehicle: VehicleParams, mass_method: str,
+                      slope_method: str) -> tuple[list, dict]:
+    est = _read_estimates(estimates)
+    inputs = _read_longitudinal_inputs(case.bag)
+    rows: list[dict] = []
+    series: dict = {}
+    gt_slope, gt_mass = est.get(T.GT_ROAD_SLOPE), est.get(T.GT_MASS)
+    if gt_slope is None or gt_mass is None or inputs["speed"].size < 2:
+        return rows, series
+    t0 = float(gt_slope["t"][0])
+    start = t0 + WARMUP_S
+    kt, kgrade = baselines.kinematic_grade(inputs["imu_t"], inputs["fx"], inputs["speed_t"], inputs["speed"],
+                                           gravity=vehicle.gravity)
+    series.update(truth_slope=(gt_slope["t"], gt_slope["value"]), base_slope=(kt, kgrade))
+    slope = est.get(T.ROAD_SLOPE)
+    if slope is not None:
+        series["ours_slope"] = (slope["t"], slope["value"])
+        rows.append(_row(case, "slope", "deg", f"road_slope ({slope_method})", "kinematic grade, low-passed",
+                         _errors(slope["t"], slope["value"], gt_slope["t"], gt_slope["value"], start)[1:],
+                         _errors(kt, kgrade, gt_slope["t"], gt_slope["value"], start)[1:], scale=180.0 / math.pi))
+    mass = est.get(T.MASS)
+    true_mass = float(np.median(gt_mass["value"]))
+    if mass is not None and np.isfinite(inputs["force"]).sum() > 10:
+        t_end = float(mass["t"][-1])
+        half = mass["t"] >= t0 + MASS_FROM_FRACTION * (t_end - t0)
+        ours = (mass["value"][half], np.full(int(half.sum()), true_mass))
+        lsq_true = baselines.batch_ls_mass(inputs["force_t"], inputs["force"], inputs["speed_t"], inputs["speed"],
+                                           gt_slope["t"], gt_slope["value"], vehicle)
+        lsq_ours = baselines.batch_ls_mass(inputs["force_t"], inputs["force"], inputs["speed_t"], inputs["speed"],
+                                           slope["t"], slope["value"], vehicle) if slope is not None else None
+        extra = {"true_mass": true_mass, "batch_ls_true_grade_kg": lsq_true["mass"],
+                 "batch_ls_our_slope_kg": lsq_ours["mass"] if lsq_ours else math.nan,
+                 "last_half_max_error_pct": 100.0 * float(np.max(np.abs(ours[0] / true_mass - 1.0)))
+                 if ours[0].size else math.nan}
+        pct = (100.0 * ours[0] / true_mass, 100.0 * ours[1] / true_mass)
+        for label, lsq in (("true grade", lsq_true), ("our slope", lsq_ours)):
+            if lsq is None:
+                continue
+            base = ((100.0 * np.array([lsq["mass"]]) / true_mass, np.array([100.0]))
+                    if math.isfinite(lsq["mass"]) else None)
+            rows.append(_row(case, "mass (last half)", "%", f"mass ({mass_method})",
+                             f"batch LS over the drive, {label}", pct, base, extra=extra))
+        series.update(ours_mass=(mass["t"], mass["value"]), truth_mass=(gt_mass["t"], gt_mass["value"]))
+        if math.isfinite(lsq_true["mass"]):
+            series["base_mass"] = (mass["t"][[0, -1]], np.full(2, lsq_true["mass"]))
+    return rows, series
+
+
+# ------------------------------------------------------------------------------------ run
+def _shipped_methods() -> dict[str, str]:
+    import yaml
+    data = yaml.safe_load(params_file("estimation").read_text(encoding="utf-8"))
+    return {node: str(data.get(node, {}).get("ros__parameters", {}).get(key, "?"))
+            for node, key in (("vehicle_state", "filter"), ("mass", "method"), ("road_slope", "method"))}
+
+
+def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases: Sequence[str] | None = None,
+        quick: bool = False, progress: bool = True) -> dict:
+    """Make the cases, replay each, score it with its baseline; returns ``validation.json``'s content."""
+    from ..tools.replay import ReplayError, replay
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    groups = list(cases or CASE_BUILDERS)
+    unknown = [g for g in groups if g not in CASE_BUILDERS]
+    if unknown:
+        raise ValueError(f"unknown case group(s) {unknown} (known: {', '.join(CASE_BUILDERS)})")
+    methods = _shipped_methods()
+    all_cases = [c for g in groups for c in CASE_BUILDERS[g](out / "bags", quick=quick)]
+    rows, replays = [], []
+    for case in all_cases:
+        run_dir = out / "runs" / case.name
+        estimates = run_dir / "estimates"
+        if progress:
+            print(f"[validate] {case.name}: replay {case.bag} -> {estimates}")
+        wall = time.monotonic()
+        try:
+            stats = replay(case.bag, estimates, lambda ov, case=case, run_dir=run_dir: node_group(
+                [case.vehicle, params_file("estimation")], ov, run_dir / "logs"), progress=progress)
+        except ReplayError as exc:
+            raise RuntimeError(f"replay of {case.name} failed: {exc}; logs in {run_dir / 'logs'}") from exc
+        vehicle = load_vehicle_params(case.vehicle)
+        series: dict = {}
+        if "lateral" in case.kinds:
+            r, s = lateral_rows(case, estimates, vehicle, methods["vehicle_state"])
+            rows += r
+            series.update(s)
+        if "longitudinal" in case.kinds:
+            r, s = longitudinal_rows(case, estimates, vehicle, methods["mass"], methods["road_slope"])
+            rows += r
+            series.update(s)
+        _plot(case, series, out / f"{case.name}.png")
+        replays.append({"case": case.name, "source": case.source, "bag": str(case.bag),
+                        "vehicle": str(case.vehicle), "independent": case.independent, "notes": case.notes,
+                        "lossless": stats.lossless, "wall_s": time.monotonic() - wall})
+    result = {"params": "params/estimation.yaml", "methods": methods, "warmup_s": WARMUP_S,
+              "quick": quick, "cases": replays, "rows": rows}
+    (out / "validation.json").write_text(json.dumps(result, indent=2, default=float) + "\n", encoding="utf-8")
+    (out / "validation.md").write_text(format_table(result) + "\n", encoding="utf-8")
+    return result
+
+
+def _plot(case: Case, series: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [(q, scale, unit) for q, scale, unit in (("sideslip", 180 / math.pi, "deg"),
+                                                      ("slope", 180 / math.pi, "deg"), ("mass", 1.0, "kg"))
+              if f"truth_{q}" in series]
+    if not panels:
+        return
+    fig, axes = plt.subplots(len(panels), 1, figsize=(9, 2.6 * len(panels)), squeeze=False)
+    for ax, (q, scale, unit) in zip(axes[:, 0], panels):
+        for key, style, label in ((f"base_{q}", "C1-", "baseline"), (f"ours_{q}", "C0-", "ours"),
+                                  (f"truth_{q}", "k--", "truth")):
+            if key in series:
+                t, y = series[key]
+                ax.plot(np.asarray(t) - series[f"truth_{q}"][0][0], np.asarray(y) * scale, style, lw=1, label=label)
+        ax.set_ylabel(f"{q} [{unit}]")
+        ax.legend(loc="best", fontsize=8)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(f"{case.name}: {case.source}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def format_table(result: dict) -> str:
+    def num(x, spec=".3f"):
+        return format(x, spec) if x is not None and math.isfinite(x) else "n/a"
+
+    lines = ["| case | quantity | estimator | MAE | RMSE | baseline | baseline MAE | baseline RMSE | ratio |",
+             "| --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: |"]
+    for r in result["rows"]:
+        case = r["case"] + ("" if r["independent"] else " (ours)")
+        lines.append(f"| {case} | {r['quantity']} [{r['unit']}] | {r['estimator']} | {num(r['ours']['mae'])} | "
+                     f"{num(r['ours']['rmse'])} | {r['baseline']} | {num(r['base']['mae'])} | "
+                     f"{num(r['base']['rmse'])} | {num(r['ratio'], '.2f')} |")
+    lines.append("")
+    lines.append("ratio = our RMSE / the baseline's (below 1: ours better); mass rows in % of the true mass, "
+                 f"over the last half; other metrics after the first {result['warmup_s']:g} s; shipped methods: "
+                 + ", ".join(f"{k} {v}" for k, v in result["methods"].items()))
+    return "\n".join(lines)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output directory (default: {DEFAULT_OUT})")
+    p.add_argument("--cases", default=",".join(CASE_BUILDERS),
+                   help=f"comma-separated case groups (default: {','.join(CASE_BUILDERS)})")
+    p.add_argument("--quick", action="store_true", help="one short drive per group (a smoke run)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def main(args: argparse.Namespace, node_group) -> int:
+    result = run(args.out, node_group, cases=[c for c in args.cases.split(",") if c], quick=args.quick,
+                 progress=not args.quiet)
+    print(format_table(result))
+    print(f"wrote {args.out / 'validation.json'}, {args.out / 'validation.md'} and one plot per case")
+    return 0
