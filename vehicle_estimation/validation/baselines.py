@@ -11,7 +11,8 @@ data, so that a number says how much better (or worse) than the obvious method a
   the road, ``F_drive - F_aero = (m + I_w / R^2) a + m g (sin theta + C_r cos theta)``, on
   the driving samples (drive force and speed above thresholds). Given the true grade it is the
   best an estimator on these signals can do with the vehicle file's resistances; given our
-  published slope, it says how much of our mass error the slope causes.
+  published slope, it says how much of our mass error the slope causes. Samples whose residual
+  is an outlier (braking while a drive force is still reported) are trimmed and the fit redone.
 
 The vehicle's lateral baseline (a linear single-track KF) is
 :func:`vehicle_estimation.tools.stanford.baseline_linear_kf`.
@@ -33,6 +34,9 @@ KINEMATIC_GRADE_CUTOFF_HZ = 0.3
 #: the resistances the vehicle file can only approximate.
 MIN_DRIVE_FORCE_N = 300.0
 MIN_SPEED_MS = 3.0
+#: Robust refit of the batch mass: residuals beyond this many MADs are dropped, twice.
+TRIM_MADS = 4.0
+TRIM_ITERATIONS = 2
 #: The speed's derivative is taken after this low-pass, like any estimator would [Hz].
 SPEED_DERIVATIVE_CUTOFF_HZ = 1.0
 
@@ -90,4 +94,16 @@ def batch_ls_mass(force_t: np.ndarray, drive_force: np.ndarray, speed_t: np.ndar
     use = (force > MIN_DRIVE_FORCE_N) & (v > MIN_SPEED_MS) & np.isfinite(y) & np.isfinite(phi)
     if use.sum() < 10:
         return {"mass": math.nan, "samples": int(use.sum())}
-    return {"mass": float(np.sum(phi[use] * y[use]) / np.sum(phi[use] ** 2)), "samples": int(use.sum())}
+    mass = float(np.sum(phi[use] * y[use]) / np.sum(phi[use] ** 2))
+    # The contract has no brake signal: a moment of braking while the drive force is still
+    # reported (pedal overlap, a lagging CAN value) is thousands of newtons of force the model
+    # lacks. Trim what lies beyond TRIM_MADS robust deviations and refit.
+    for _ in range(TRIM_ITERATIONS):
+        residual = y - mass * phi
+        scale = 1.4826 * np.median(np.abs(residual[use] - np.median(residual[use])))
+        keep = use & (np.abs(residual) <= TRIM_MADS * max(scale, 1e-6))
+        if keep.sum() < 10:
+            break
+        mass = float(np.sum(phi[keep] * y[keep]) / np.sum(phi[keep] ** 2))
+        use = keep
+    return {"mass": mass, "samples": int(use.sum())}
