@@ -62,6 +62,7 @@ from .. import topics as T
 from ..core.geodesy import LocalTangentPlane
 from ..sim import bag as simbag
 from ..sim.noise import band_limited_noise
+from .vehicle_yaml import format_vehicle_yaml
 
 G_MODEL = 9.81                   # the model's gravity constant [m/s^2]
 SIM_RATE_HZ = 1000
@@ -159,7 +160,7 @@ def params_yaml(p=None) -> str:
         "pitch_gain": "guess (our default)", "pitch_time_constant": "guess (our default)",
         "gravity": "the model's g",
     }
-    lines = [
+    header = [
         "# BMW 320i of commonroad-vehicle-models 3.0.2 (vehiclemodels.parameters_vehicle2), the car",
         "# of the multi-body validation drives (vehicle_estimation.validation.commonroad).",
         "# Written by vehicle_estimation.validation.commonroad.params_yaml(); each value says whether",
@@ -168,19 +169,8 @@ def params_yaml(p=None) -> str:
         "# K_y0 to p_ky1 F_z), so for small slip F_y = -|p_ky1| F_z alpha per tyre: C_alpha =",
         "# |p_ky1| F_z0 at the static load F_z0 = (m_s g b/(a+b) + m_uf g)/2 (front),",
         "# (m_s g a/(a+b) + m_ur g)/2 (rear), g = 9.81 as the model. Per tyre, as VehicleParams.",
-        "/**:", "  ros__parameters:", "    vehicle:",
     ]
-    for key, value in v.items():
-        if isinstance(value, str):
-            text = value
-        elif isinstance(value, list):
-            # repr keeps "1.0" a float: a ROS params file refuses an array of mixed types.
-            text = "[" + ", ".join(repr(float(x)) for x in value) + "]"
-        else:
-            text = repr(round(float(value), 6))
-        note = notes.get(key, "")
-        lines.append(f"      {key}: {text}" + (f"   # {note}" if note else ""))
-    return "\n".join(lines) + "\n"
+    return format_vehicle_yaml(header, v, notes)
 
 
 # --------------------------------------------------------------------------- manoeuvres

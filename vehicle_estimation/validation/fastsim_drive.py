@@ -92,6 +92,7 @@ import numpy as np
 from .. import topics as T
 from ..core.geodesy import LocalTangentPlane
 from ..sim import bag as simbag
+from .vehicle_yaml import format_vehicle_yaml
 
 FASTSIM_VERSION = "3.1.0"
 VEHICLE_RESOURCE = "2012_Ford_Fusion.yaml"
@@ -430,24 +431,14 @@ def params_yaml(data: dict | None = None, *, drag_k: float | None = None) -> str
         "pitch_gain": f"{lib} has no suspension: the body pitch is the road's",
         "pitch_time_constant": "unused at pitch_gain 0", "gravity": f"{lib}'s g (its rolling-resistance power)",
     }
-    lines = [
+    header = [
         f"# 2012 Ford Fusion of NREL FASTSim {FASTSIM_VERSION} (resource {VEHICLE_RESOURCE}), the car of",
         "# the hilly validation drives (vehicle_estimation.validation.fastsim_drive).",
         "# Written by vehicle_estimation.validation.fastsim_drive.params_yaml(); each value says whether",
         "# it comes from FASTSim, is derived from it, or is a guess (FASTSim is a longitudinal,",
         "# power-based model: no engine speed, gearbox, tyres, suspension or lateral dynamics).",
-        "/**:", "  ros__parameters:", "    vehicle:",
     ]
-    for key, value in v.items():
-        if isinstance(value, str):
-            text = value
-        elif isinstance(value, list):
-            text = "[" + ", ".join(repr(float(x)) for x in value) + "]"
-        else:
-            text = repr(round(float(value), 6))
-        note = notes.get(key, "")
-        lines.append(f"      {key}: {text}" + (f"   # {note}" if note else ""))
-    return "\n".join(lines) + "\n"
+    return format_vehicle_yaml(header, v, notes)
 
 
 # --------------------------------------------------------------------------- output
