@@ -152,13 +152,12 @@ def _read_estimates(bag: Path) -> dict:
     return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.GT_MASS, T.GT_ROAD_SLOPE])
 
 
-def lateral_rows(case: Case, estimates: Path, vehicle: VehicleParams, filter_name: str) -> tuple[list, dict]:
+def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str) -> tuple[list, dict]:
     from . import lateral
 
     drive = lateral.read_drive(case.bag)
     truth = drive["truth"]
     base = lateral.run_baseline(drive, vehicle)
-    est = _read_estimates(estimates)
     start = float(truth["t"][0]) + WARMUP_S
     rows, series = [], {"truth_sideslip": (truth["sideslip_t"], truth["sideslip"]),
                         "base_sideslip": (base["t"], base["sideslip"])}
@@ -203,9 +202,8 @@ def _read_longitudinal_inputs(bag: Path) -> dict[str, np.ndarray]:
             "force_t": force_a[:, 0], "force": force_a[:, 1]}
 
 
-def longitudinal_rows(case: Case, estimates: Path, vehicle: VehicleParams, mass_method: str,
+def longitudinal_rows(case: Case, est: dict, vehicle: VehicleParams, mass_method: str,
                       slope_method: str) -> tuple[list, dict]:
-    est = _read_estimates(estimates)
     inputs = _read_longitudinal_inputs(case.bag)
     rows: list[dict] = []
     series: dict = {}
@@ -285,13 +283,14 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
         except ReplayError as exc:
             raise RuntimeError(f"replay of {case.name} failed: {exc}; logs in {run_dir / 'logs'}") from exc
         vehicle = load_vehicle_params(case.vehicle)
+        est = _read_estimates(estimates)     # once: both kinds score the same recording
         series: dict = {}
         if "lateral" in case.kinds:
-            r, s = lateral_rows(case, estimates, vehicle, methods["vehicle_state"])
+            r, s = lateral_rows(case, est, vehicle, methods["vehicle_state"])
             rows += r
             series.update(s)
         if "longitudinal" in case.kinds:
-            r, s = longitudinal_rows(case, estimates, vehicle, methods["mass"], methods["road_slope"])
+            r, s = longitudinal_rows(case, est, vehicle, methods["mass"], methods["road_slope"])
             rows += r
             series.update(s)
         _plot(case, series, out / f"{case.name}.png")
