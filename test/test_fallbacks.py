@@ -78,7 +78,10 @@ def test_diagnostics_name_each_fallback(replayed):
     assert diagnostics["fusion"]["heading source"].startswith("free")
     assert diagnostics["fusion"]["position source"].startswith("dead reckoning")
     assert "free heading" in diagnostics["fusion"]["message"]
-    assert diagnostics["road_slope"]["slope source"].startswith("cubic_prediction")
+    # Without GNSS the fusion's grade is the kinematic one with the accelerometer bias held at
+    # its prior, converged within the prior's variance: the slope node keeps it.
+    assert diagnostics["fusion"]["accel bias estimation"].startswith("held at its prior")
+    assert diagnostics["road_slope"]["slope source"].startswith("fusion_pitch")
     assert diagnostics["vehicle_state"]["vx source"].startswith("vehicle/speed")
 
 

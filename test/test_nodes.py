@@ -130,6 +130,7 @@ def test_imu_bias_message_carries_the_mounting():
     msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (float(v) for v in q)
     msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = 0.1, -0.05, 0.02
     msg.angular_velocity.z = 0.003
+    msg.linear_acceleration_covariance[0] = 0.05 ** 2
     bias = FusionImuBias()
     entry = FusionImuBias.convert(msg)
     bias.history.add(*entry)
@@ -138,11 +139,12 @@ def test_imu_bias_message_carries_the_mounting():
     f_raw = C.T @ f_base + np.array([0.1, -0.05, 0.02])
     f, w = bias.correct(T0, f_raw, C.T @ np.array([0.0, 0.0, 0.2]) + np.array([0.0, 0.0, 0.003]))
     assert bias.valid
+    assert bias.accel_x_variance == pytest.approx(0.05 ** 2)   # the slope observer's bias variance
     np.testing.assert_allclose(f, f_base, atol=1e-12)
     np.testing.assert_allclose(w, [0.0, 0.0, 0.2], atol=1e-12)
     # a publisher that leaves the orientation at zero means "no mounting": identity
     msg.orientation.w = msg.orientation.x = msg.orientation.y = msg.orientation.z = 0.0
-    _, (_, _, mount) = FusionImuBias.convert(msg)
+    _, (_, _, mount, _) = FusionImuBias.convert(msg)
     np.testing.assert_array_equal(mount, np.eye(3))
 
 

@@ -169,6 +169,21 @@ class FusionConfig:
     estimate_mounting: bool = False          # refine mounting pitch and yaw online (needs nh_sigma_z <= 1)
     p0_mounting_sigma: float = 0.035         # [rad] (2 deg) prior on the pitch and yaw refinement
     q_mounting_sigma: float = 1e-7           # [rad] per sample: a mounting does not move
+    # --- without GNSS (not in the paper, which always has it) ---
+    # Without GNSS the along-track (and lateral) accelerometer bias and the pitch (roll) enter
+    # every measurement only as the sum g*tilt + bias: one direction of the error state is
+    # unobservable. The paper's bias random walk then lets the split wander with whatever the
+    # model gets wrong (on FASTSim's hilly drive the x bias reached +2 m/s^2 and the grade
+    # -10 deg in 600 s; the true bias is 0.05). So the accelerometer bias is held while no
+    # fix has aided the filter for gnss_aiding_timeout_s, and every correction of the sum goes
+    # into the tilt, which the gyro carries between corrections.
+    accel_bias_walk_without_gnss: bool = False  # let the accel bias random-walk without GNSS too (paper Q)
+    gnss_aiding_timeout_s: float = 5.0       # [s] no fix applied for this long -> the accel bias is held
+    # A bias that no fix has ever observed is only known to its prior; the turn-on bias of a
+    # MEMS accelerometer is typically this large. It enters the grade variance, and the
+    # published bias covariance, as a 'consider' term: it is not in the filter's P, because a
+    # large P there would move corrections of the sum into the bias (the drift above).
+    unaided_accel_bias_sigma: float = 0.05   # [m/s^2] accel bias prior in the grade variance until GNSS observes it
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -178,7 +193,8 @@ class FusionConfig:
                "nh_sigma_z", "stationary_sigma", "speed_timeout_s", "init_max_accel_std",
                "init_max_gyro_std", "heading_min_baseline_m", "stationary_max_accel",
                "stationary_max_rate", "stationary_imu_tau_s", "max_measurement_delay_s",
-               "max_imu_dt_s", "in_motion_window_s", "in_motion_tilt_sigma", "in_motion_gyro_bias_sigma"]
+               "max_imu_dt_s", "in_motion_window_s", "in_motion_tilt_sigma", "in_motion_gyro_bias_sigma",
+               "gnss_aiding_timeout_s"]
         for name in pos:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
@@ -186,7 +202,7 @@ class FusionConfig:
         v = self.stationary_speed_threshold
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ValueError(f"FusionConfig.stationary_speed_threshold must be >= 0, got {v!r}")
-        for name in ("p0_mounting_sigma", "q_mounting_sigma"):
+        for name in ("p0_mounting_sigma", "q_mounting_sigma", "unaided_accel_bias_sigma"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"FusionConfig.{name} must be a finite number >= 0, got {v!r}")
@@ -221,7 +237,7 @@ class FusionConfig:
         if self.heading_max_fixes < 2:
             raise ValueError("FusionConfig.heading_max_fixes must be >= 2")
         for name in ("stationary_update_longitudinal", "speed_unsigned", "full_velocity_jacobian",
-                     "estimate_mounting", "in_motion_alignment"):
+                     "estimate_mounting", "in_motion_alignment", "accel_bias_walk_without_gnss"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"FusionConfig.{name} must be a bool")
 
@@ -263,6 +279,7 @@ class FusionEKF:
         self._eye3 = np.eye(3)
         self._di = np.arange(N_ERR)
         self._qd_dt: float | None = None
+        self._qd_walk: bool | None = None
         self._qd = np.zeros(N_ERR)
         self.reset()
 
@@ -283,6 +300,7 @@ class FusionEKF:
         self._f_prev: np.ndarray | None = None  # last raw IMU sample (used over the next interval, Eq. (28))
         self._w_prev: np.ndarray | None = None
         self._t_gnss: float | None = None
+        self._t_gnss_applied: float | None = None   # last fix that updated the navigation state
         self._t_speed: float | None = None
         self._last_speed: float | None = None
         self._last_gnss: np.ndarray | None = None
@@ -307,6 +325,18 @@ class FusionEKF:
     def initialized(self) -> bool:
         """Aligned and the heading fixed by GNSS motion: the pose is in ENU."""
         return self.status == STATUS_RUNNING
+
+    @property
+    def gnss_aided(self) -> bool:
+        """A fix has updated the navigation state within ``gnss_aiding_timeout_s``."""
+        return (self.status == STATUS_RUNNING and self._t_gnss_applied is not None and self._t is not None
+                and self._t - self._t_gnss_applied <= self.config.gnss_aiding_timeout_s)
+
+    @property
+    def accel_bias_observed(self) -> bool:
+        """GNSS has aided the filter since the alignment, so its accelerometer bias is more than
+        the prior (and held at what it learned through a later outage)."""
+        return self._t_gnss_applied is not None
 
     @property
     def navigating(self) -> bool:
@@ -546,14 +576,16 @@ class FusionEKF:
         P = F @ self._P @ F.T                             # Eq. (35)
         # G Qc G^T (Eqs. (34), (36)): R diag(sigma^2) R^T = sigma^2 I for isotropic sigma,
         # so the discrete process noise is diagonal; cached per dt.
-        if dt != self._qd_dt:
+        walk = self.gnss_aided or c.accel_bias_walk_without_gnss
+        if dt != self._qd_dt or walk != self._qd_walk:
             kb = dt * c.imu_rate_hz
             self._qd = np.concatenate([
                 np.zeros(3), np.full(3, (dt * c.q_accel_sigma) ** 2),
                 np.full(3, (dt * c.q_gyro_sigma) ** 2),
-                np.full(3, kb * c.q_accel_bias_sigma ** 2), np.full(3, kb * c.q_gyro_bias_sigma ** 2),
+                np.full(3, kb * c.q_accel_bias_sigma ** 2 if walk else 0.0),
+                np.full(3, kb * c.q_gyro_bias_sigma ** 2),
                 np.full(2, kb * c.q_mounting_sigma ** 2 if c.estimate_mounting else 0.0)])
-            self._qd_dt = dt
+            self._qd_dt, self._qd_walk = dt, walk
         P[self._di, self._di] += self._qd
         self._P = P
 
@@ -696,7 +728,10 @@ class FusionEKF:
         H[:, IV:IV + 3] = dt * self._eye3
         y = z - (self._p + dt * self._v)
         res = self._update(y, H, W, self.config.gnss_gate_chi2)
-        return self._after_gated("gnss", res, y, H, W, slice(IP, IP + 3))
+        used = self._after_gated("gnss", res, y, H, W, slice(IP, IP + 3))
+        if used:
+            self._t_gnss_applied = t
+        return used
 
     def _after_gated(self, kind: str, res: int, y, H, W, block: slice) -> bool:
         if res == 1:
@@ -918,8 +953,17 @@ class FusionEKF:
         return J @ self._P @ J.T
 
     @property
+    def _unaided_bias_variance(self) -> float:
+        return 0.0 if self.accel_bias_observed else self.config.unaided_accel_bias_sigma ** 2
+
+    @property
     def accel_bias_covariance(self) -> np.ndarray:
-        return self._P[IBA:IBA + 3, IBA:IBA + 3].copy()
+        """Including, until GNSS has observed it, the bias prior on x and y (see
+        ``FusionConfig.unaided_accel_bias_sigma``)."""
+        P = self._P[IBA:IBA + 3, IBA:IBA + 3].copy()
+        P[0, 0] += self._unaided_bias_variance
+        P[1, 1] += self._unaided_bias_variance
+        return P
 
     @property
     def gyro_bias_covariance(self) -> np.ndarray:
@@ -936,7 +980,9 @@ class FusionEKF:
         cg = max(math.sqrt(max(0.0, 1.0 - b[2] * b[2])), 1e-6)
         j = np.array([-b[1], b[0], 0.0]) / cg
         j = j @ self._base_attitude_jacobian()
-        return float(j @ self._P @ j)
+        # Without GNSS the grade is the kinematic one, (f_x - b_x - dv/dt) / g: the unobserved
+        # bias is in it one to one.
+        return float(j @ self._P @ j) + self._unaided_bias_variance / (self.config.gravity * cg) ** 2
 
     @property
     def pitch_variance(self) -> float:

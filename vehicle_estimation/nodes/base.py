@@ -796,6 +796,8 @@ class FusionImuBias:
     def __init__(self) -> None:
         self.history = UpstreamHistory(horizon_s=5.0)
         self.valid = False
+        #: Variance of the along-track bias estimate [m^2/s^4] (published by the fusion).
+        self.accel_x_variance = 0.0
 
     @staticmethod
     def convert(msg: Any) -> tuple[float, Any] | None:
@@ -809,16 +811,18 @@ class FusionImuBias:
         norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else 0.0
         # A publisher without a mounting leaves the quaternion at zero: identity.
         mount = quat_to_rotmat(q / norm) if norm > 0.5 else np.eye(3)
-        return t, (ba, bg, mount)
+        var = msg.linear_acceleration_covariance[0]
+        return t, (ba, bg, mount, var if math.isfinite(var) and var > 0.0 else 0.0)
 
     def correct(self, t: float, f: Any, w: Any) -> tuple[Any, Any]:
         entry = self.history.at(t)
         self.valid = entry is not None
         if entry is None:
             return f, w
-        ba, bg, mount = entry
+        ba, bg, mount, self.accel_x_variance = entry
         return mount @ (f - ba), mount @ (w - bg)
 
     def clear(self) -> None:
         self.history.clear()
         self.valid = False
+        self.accel_x_variance = 0.0

@@ -218,6 +218,12 @@ class FusionNode(EstimatorNode):
             values.update({
                 "road grade [deg]": f"{math.degrees(ekf.road_grade):.3f}",
                 "accel bias [m/s^2]": np.array2string(ekf.accel_bias, precision=4),
+                # Without GNSS the bias and the grade are one unobservable sum (FusionConfig).
+                "accel bias estimation": (
+                    "GNSS-aided" if ekf.gnss_aided
+                    else "held through a GNSS outage" if ekf.accel_bias_observed
+                    else "held at its prior (no GNSS yet): the grade is kinematic, its variance "
+                         "carries the prior"),
                 "gyro bias [rad/s]": np.array2string(ekf.gyro_bias, precision=6),
                 "IMU mounting rpy [deg]": np.array2string(np.degrees(ekf.mounting_rpy), precision=3),
             })

@@ -195,9 +195,11 @@ class SlopeNode(EstimatorNode):
                                                                yaw_rate=float(w[2]), vy=velocity[1]):
                 self.reject("slope:rejected_by_core")
         if isinstance(self.core, AutoSlope):
-            # Without the fusion's bias estimate the accelerometer bias goes into the slope.
-            bias_std = 0.0 if self.bias.valid else self.auto_config.uncompensated_accel_bias_std
-            self.core.update(t, grade_usable, (bias_std / self.vehicle.gravity) ** 2)
+            # The accelerometer bias left in the observer's input goes into its slope one to one:
+            # the fusion's bias uncertainty, or without the fusion the sensor's turn-on bias.
+            bias_variance = (self.bias.accel_x_variance if self.bias.valid
+                             else self.auto_config.uncompensated_accel_bias_std ** 2)
+            self.core.update(t, grade_usable, bias_variance / self.vehicle.gravity ** 2)
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
