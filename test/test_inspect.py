@@ -17,8 +17,8 @@ from rosbags.typesys import Stores, get_typestore
 from vehicle_estimation import topics
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
-from vehicle_estimation.tools import inspect_bag
-from vehicle_estimation.tools.inspect_bag import format_summary, summarize
+from vehicle_estimation.tools import inspect_bag, node_plan
+from vehicle_estimation.tools.inspect_bag import InspectError, format_summary, summarize
 
 ROOT = Path(__file__).resolve().parent.parent
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -133,8 +133,9 @@ def test_out_of_order_and_duplicated_stamps(bags):
 def test_no_gnss_dead_reckons(bags):
     summary = summarize(bags["no_gnss"], _files(), {})
     assert not summary["inputs"][topics.GNSS]["present"]
-    assert ("no GNSS: dead reckoning, odom = start pose with a free heading; position covariance grows"
-            in _node_text(summary, "fusion"))
+    text = _node_text(summary, "fusion")
+    assert "no GNSS: dead reckoning, odom = start pose with a free heading; position covariance grows" in text
+    assert "accelerometer bias held at its prior" in text
     assert "gnss/fix: MISSING" in format_summary(summary)
 
 
@@ -179,7 +180,7 @@ def test_remap(bags):
     assert imu["present"] and imu["bag_topics"] == ["/sensors/imu"]
     assert imu["rate_hz"] == pytest.approx(200.0, rel=0.02)
     assert remapped["empty_outputs"] == []
-    with pytest.raises(inspect_bag.InspectError):
+    with pytest.raises(InspectError):
         summarize(bags["renamed"], _files(), {"/sensors/imu": "imu/raw"})
 
 
@@ -212,8 +213,8 @@ def test_node_defaults_match_the_node_sources(node, module, kind, param):
     found = re.findall(rf'declare_{kind}\(\s*"{re.escape(param)}",\s*("[^"]*"|True|False)', source)
     assert len(found) == 1, f"{module}.py declares {param!r} {len(found)} times"
     declared = found[0].strip('"') if kind == "str" else found[0] == "True"
-    assert inspect_bag.NODE_DEFAULTS[node][param] == declared, (
-        f"inspect_bag.NODE_DEFAULTS[{node!r}][{param!r}] drifted from {module}.py")
+    assert node_plan.NODE_DEFAULTS[node][param] == declared, (
+        f"node_plan.NODE_DEFAULTS[{node!r}][{param!r}] drifted from {module}.py")
 
 
 def test_ros1_bag(bags, tmp_path):

@@ -239,9 +239,9 @@ class StateNode(EstimatorNode):
         self.speed = (t, v, var)
         self.speed_t = t
 
-    def _update_speed_fallback(self, t: float, wheels: np.ndarray) -> None:
+    def _update_speed_fallback(self, t: float, rear_wheels_measured: bool) -> None:
         """vx from vehicle/speed when the wheel speeds are missing (each sample used once)."""
-        if np.all(np.isfinite(wheels[2:])):
+        if rear_wheels_measured:
             self.vx_source = VX_FROM_WHEELS
             self.set_missing("wheel speeds and vehicle/speed", False)
             return
@@ -322,11 +322,13 @@ class StateNode(EstimatorNode):
             self.reject("state:rejected_by_filter")
         if self.core.reinitialisations != reinitialisations:
             self.note_event(f"vehicle-state filter {self.core.last_event}")
+        # vx is measured while both rear wheel speeds are there (the filter reads them).
+        rear_wheels_measured = bool(np.all(np.isfinite(wheels[2:])))
         if self.speed_fallback:
-            self._update_speed_fallback(t, wheels)
+            self._update_speed_fallback(t, rear_wheels_measured)
         # Without a speed measurement vx integrates the accelerometer and drifts without bound,
         # and the sideslip with it: still published, never as converged.
-        self._vx_measured = bool(np.all(np.isfinite(wheels[2:]))) or self.vx_source == VX_FROM_SPEED
+        self._vx_measured = rear_wheels_measured or self.vx_source == VX_FROM_SPEED
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_state(t)
