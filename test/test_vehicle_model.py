@@ -134,3 +134,29 @@ def test_standstill_is_finite():
 
 def test_sideslip_eq14():
     assert sideslip(np.array([20.0, 0.5, 0, 0, 0])) == pytest.approx(math.atan(0.5 / 20.0))
+
+
+def test_tyre_load_exponent_scales_stiffness_with_load():
+    """``tyre_load_exponent`` n: C (F_z / F_z0)^n; n = 0 is paper Eq. 9 (constant stiffness)."""
+    import dataclasses
+    prop = dataclasses.replace(SEDAN, tyre_load_exponent=1.0)
+    fz0 = np.array([SEDAN.lr, SEDAN.lr, SEDAN.lf, SEDAN.lf]) / (2 * SEDAN.wheelbase) * SEDAN.mass * SEDAN.gravity
+    slip, alpha = np.full(4, 0.002), np.full(4, 0.01)
+    # at the static loads both are the paper's tyre
+    assert np.allclose(_dugoff(slip, alpha, fz0, prop), _dugoff(slip, alpha, fz0, SEDAN))
+    # a corner: 40 % of the load moved from the inner to the outer wheels
+    fz = fz0 * np.array([0.6, 1.4, 0.6, 1.4])
+    fx0, fy0 = _dugoff(slip, alpha, fz, SEDAN)
+    fx1, fy1 = _dugoff(slip, alpha, fz, prop)
+    c = np.array([SEDAN.cornering_stiffness_front] * 2 + [SEDAN.cornering_stiffness_rear] * 2)
+    # proportional stiffness, linear region: force in proportion to the load, axle sum unchanged
+    assert np.allclose(fy1, c * np.tan(alpha) * fz / fz0 / 1.002, rtol=1e-9)
+    assert np.allclose(fx1, SEDAN.longitudinal_stiffness * slip * fz / fz0 / 1.002, rtol=1e-9)
+    assert fy1[:2].sum() == pytest.approx(fy0[:2].sum(), rel=1e-9)
+    # constant stiffness saturates an unloaded wheel where the load-sensitive tyre does not
+    alpha = np.full(4, 0.04)
+    fy0 = _dugoff(np.zeros(4), alpha, fz, SEDAN)[1]
+    fy1 = _dugoff(np.zeros(4), alpha, fz, prop)[1]
+    assert fy1[0] + fy1[1] > fy0[0] + fy0[1]
+    with pytest.raises(ValueError, match="tyre_load_exponent"):
+        dataclasses.replace(SEDAN, tyre_load_exponent=-0.5).validate()

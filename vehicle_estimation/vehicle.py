@@ -100,6 +100,11 @@ class VehicleParams:
     cornering_stiffness_front: float = 60000.0           # C_α per front tyre [N/rad]
     cornering_stiffness_rear: float = 55000.0            # C_α per rear tyre [N/rad]
     longitudinal_stiffness: float = 80000.0              # C_s per tyre [N per unit slip]
+    # Load sensitivity of those two stiffnesses: C(F_z) = C (F_z / F_z0)^n with F_z0 the static
+    # load of the tyre at ``mass``. 0 = constant (paper 004 Eq. 9, our simulator); 1 = proportional
+    # to the load (a Magic-Formula tyre with K = p_k1 F_z, as commonroad-vehicle-models codes it);
+    # real tyres lie in between (degressive).
+    tyre_load_exponent: float = 0.0                      # n [-]
     road_friction: float = 0.9                           # μ [-]
     # Magic-Formula lateral tyre (paper 002 Sec. 2.2); used by the 3-DOF UKF model
     magic_b: float = 10.0
@@ -145,7 +150,7 @@ class VehicleParams:
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"vehicle.{key} must be a finite positive number, got {value!r}")
         for key in ("wheel_inertia", "engine_inertia", "rolling_resistance", "engine_drag_torque", "pitch_gain",
-                    "pitch_time_constant"):
+                    "pitch_time_constant", "tyre_load_exponent"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"vehicle.{key} must be finite and >= 0, got {value!r}")

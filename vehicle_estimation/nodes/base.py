@@ -234,6 +234,8 @@ VEHICLE_PARAM_RANGES: dict[str, tuple[float, float, str]] = {
     "cornering_stiffness_front": (1.0e3, 2.0e6, "Cornering stiffness per front tyre [N/rad]"),
     "cornering_stiffness_rear": (1.0e3, 2.0e6, "Cornering stiffness per rear tyre [N/rad]"),
     "longitudinal_stiffness": (1.0e3, 5.0e6, "Longitudinal slip stiffness per tyre [N]"),
+    "tyre_load_exponent": (0.0, 2.0, "Load sensitivity n of the tyre stiffnesses, C (F_z/F_z0)^n "
+                                      "(0 = constant, paper 004)"),
     "road_friction": (0.05, 1.5, "Tyre-road friction coefficient mu"),
     "magic_b": (0.1, 50.0, "Magic Formula stiffness factor B"),
     "magic_c": (0.1, 5.0, "Magic Formula shape factor C"),

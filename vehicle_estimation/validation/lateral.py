@@ -12,7 +12,11 @@ contract and ground truth), and runs, without ROS:
   the node's default tunings (``p0_diag`` = paper P0, ``q_diag`` = paper Q x 0.01 s, ``r_diag``
   = paper R, ``initial_vx`` 0 and ``init_vx_from_wheel_speeds`` true as in
   ``params/estimation.yaml``, default ``vbackf.*``/``aoukf.*``, no GA-BPNN weights for this
-  car), raw IMU (no fusion bias: the node runs alone), slope unknown (slope 0 plus the
+  car), IMU without the fusion's bias (the node runs alone here), but with the node's
+  ``roll_compensation``: ``g sin(roll) cos(pitch)`` taken out of the measured ay, with the
+  ground-truth attitude standing in for the fusion's (``--roll truth``, default; ``--roll none``
+  feeds the raw ay, which on the CommonRoad car reads 15 % above the true ay in a corner:
+  4.3 deg of roll at 4.7 m/s^2), slope unknown (slope 0 plus the
   ``missing_slope_std_deg`` = 2 deg vx process noise) and the nominal mass; the last joint state
   and speed *before* the IMU sample (in the bag a joint state with the same stamp is written
   after the IMU message); a 1 s wait for wheel speeds before starting from ``initial_vx``; IMU
@@ -22,7 +26,9 @@ contract and ground truth), and runs, without ROS:
 
 Metrics from ``start`` (default the end of the warm-up, 5 s): sideslip RMSE [deg], vy MAE and
 RMSE [m/s], vx RMSE [m/s], and the ratio of the filter's sideslip RMSE to the baseline's.
-CLI: ``python -m vehicle_estimation.validation.lateral BAG... [--vehicle YAML] [--wheel-radius R]``.
+The baseline takes the raw ay (textbook, and as ``validate`` feeds it).
+CLI: ``python -m vehicle_estimation.validation.lateral BAG... [--vehicle YAML] [--wheel-radius R]
+[--roll truth|none]``.
 """
 
 from __future__ import annotations
@@ -53,6 +59,8 @@ GRADE_CORRELATION_S = 5.0         # state node
 MISSING_SLOPE_STD_DEG = 2.0       # state node missing_slope_std_deg
 SPEED_FALLBACK_STD = 0.3          # state node speed_fallback_std
 FILTERS = ("ckf", "vbackf", "aoukf")
+ROLL_SOURCES = ("truth", "none")
+DEFAULT_ROLL = "truth"
 
 
 # --------------------------------------------------------------------------- bag reading
@@ -61,7 +69,7 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    want = {T.IMU, T.JOINT_STATES, T.SPEED, T.GT_VEHICLE_STATE, T.GT_SIDESLIP}
+    want = {T.IMU, T.JOINT_STATES, T.SPEED, T.GT_VEHICLE_STATE, T.GT_SIDESLIP, T.GT_ODOMETRY}
     rows: dict[str, list] = {k: [] for k in want}
     with AnyReader([Path(bag)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = [c for c in reader.connections if c.topic.lstrip("/") in want]
@@ -80,6 +88,12 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
                 pos = dict(zip(msg.name, msg.position))
                 rows[topic].append((t, *[vel.get(n, math.nan) for n in T.WHEEL_JOINTS],
                                     pos.get(T.STEERING_JOINT, math.nan)))
+            elif topic == T.GT_ODOMETRY:
+                q = msg.pose.pose.orientation
+                n = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
+                # R[2, 1] = sin(roll) cos(pitch): the share of gravity on the body y axis, as
+                # nodes.conversions.lateral_gravity_entry reads it off the fusion's Odometry
+                rows[topic].append((t, 2.0 * (q.y * q.z + q.w * q.x) / n if n > 0.5 else math.nan))
             elif topic == T.SPEED:
                 rows[topic].append((t, msg.twist.twist.linear.x, msg.twist.covariance[0]))
             else:
@@ -88,12 +102,14 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
     arr = {k: np.array(v, dtype=float) for k, v in rows.items()}
     imu, js, sp, gt, gb = (arr[T.IMU], arr[T.JOINT_STATES], arr[T.SPEED], arr[T.GT_VEHICLE_STATE],
                            arr[T.GT_SIDESLIP])
+    go = arr[T.GT_ODOMETRY].reshape(-1, 2)
     return {
         "imu": {"t": imu[:, 0], "f": imu[:, 1:4], "w": imu[:, 4:7]},
         "joints": {"t": js[:, 0], "wheels": js[:, 1:5], "steering_wheel": js[:, 5]},
         "speed": {"t": sp[:, 0], "v": sp[:, 1], "var": sp[:, 2]},
         "truth": {"t": gt[:, 0], "vx": gt[:, 1], "vy": gt[:, 2], "yaw_rate": gt[:, 3],
-                  "sideslip_t": gb[:, 0], "sideslip": gb[:, 1]},
+                  "sideslip_t": gb[:, 0], "sideslip": gb[:, 1],
+                  "attitude_t": go[:, 0], "lateral_gravity": go[:, 1]},
     }
 
 
@@ -112,10 +128,32 @@ def make_core(name: str, vehicle: VehicleParams):
     raise ValueError(f"unknown filter {name!r}")
 
 
-def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool) -> dict[str, np.ndarray]:
-    """Step one core through a drive as the state node would; (t, vx, vy, r, beta) per step."""
+def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:
+    """The gravity on the body y axis [m/s^2 per g] at the IMU stamps ``t``, for the roll
+    compensation (``roll`` of :func:`run_core`): ``truth`` = the ground-truth attitude (an ideal
+    fusion), ``none`` = 0 (raw IMU)."""
+    if source == "none":
+        return np.zeros_like(t)
+    if source != "truth":
+        raise ValueError(f"unknown roll source {source!r}")
+    tru = drive["truth"]
+    if tru["attitude_t"].size == 0:
+        raise ValueError("roll='truth' needs ground_truth/odometry in the bag")
+    # the last attitude before the sample, as the node's history lookup
+    i = np.clip(np.searchsorted(tru["attitude_t"], t + STAMP_TOLERANCE_S) - 1, 0, tru["attitude_t"].size - 1)
+    return tru["lateral_gravity"][i]
+
+
+def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool,
+             roll: str = DEFAULT_ROLL) -> dict[str, np.ndarray]:
+    """Step one core through a drive as the state node would; (t, vx, vy, r, beta) per step.
+
+    ``roll``: the state node's ``roll_compensation`` (on by default there, with the fusion's
+    attitude): ``truth`` takes ``g sin(roll) cos(pitch)`` of the ground-truth attitude out of
+    the measured ay (the fusion at its best), ``none`` feeds the raw ay."""
     core = make_core(name, vehicle)
     imu, js, sp = drive["imu"], drive["joints"], drive["speed"]
+    g_y = vehicle.gravity * lateral_gravity(drive, imu["t"], roll)
     missing_slope_noise = 2.0 * (vehicle.gravity * math.sin(math.radians(MISSING_SLOPE_STD_DEG))) ** 2 \
         * GRADE_CORRELATION_S
     core.extra_vx_noise_density = missing_slope_noise
@@ -151,7 +189,7 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
                 first_imu_t = t
             if t - first_imu_t < WHEEL_WAIT_S:
                 continue
-        z_sum += (f[0], f[1], w[2])
+        z_sum += (f[0], f[1] - g_y[k], w[2])
         z_count += 1
         if core.initialised and t - last_step < 1.0 / FILTER_RATE_HZ - STAMP_TOLERANCE_S:
             continue
@@ -203,11 +241,13 @@ def _scores(est: dict, truth: dict, start: float) -> dict[str, float]:
 
 def compare_state_filters(bag: Path, *, vehicle: VehicleParams | str | Path | None = None,
                           wheel_radius: float | None = None, start: float = 5.0,
-                          filters: Sequence[str] = FILTERS) -> dict:
+                          filters: Sequence[str] = FILTERS, roll: str = DEFAULT_ROLL) -> dict:
     """Scores of the baseline and of each filter (with and without wheel speeds) on ``bag``.
 
     ``vehicle``: params (default ``params/commonroad_bmw320i.yaml``); ``wheel_radius``
-    overrides its ``wheel_radius`` (e.g. the measured effective rolling radius).
+    overrides its ``wheel_radius`` (e.g. the measured effective rolling radius); ``roll``: the
+    roll compensation of our filters (:func:`run_core`; the baseline, as textbook, takes the
+    raw ay).
     Returns ``{"bag", "baseline": scores, "<filter>/wheels": scores, "<filter>/can": scores}``;
     each filter's scores carry ``ratio`` = its sideslip RMSE / the baseline's.
     """
@@ -217,19 +257,20 @@ def compare_state_filters(bag: Path, *, vehicle: VehicleParams | str | Path | No
         vehicle = dataclasses.replace(vehicle, wheel_radius=float(wheel_radius))
     drive = read_drive(Path(bag))
     truth = drive["truth"]
-    out: dict = {"bag": str(bag), "wheel_radius": vehicle.wheel_radius}
+    out: dict = {"bag": str(bag), "wheel_radius": vehicle.wheel_radius, "roll": roll}
     base = _scores(run_baseline(drive, vehicle), truth, start)
     out["baseline"] = base
     for name in filters:
         for mode in ("wheels", "can"):
-            s = _scores(run_core(name, drive, vehicle, use_wheels=mode == "wheels"), truth, start)
+            s = _scores(run_core(name, drive, vehicle, use_wheels=mode == "wheels", roll=roll), truth, start)
             s["ratio"] = s["sideslip_rmse_deg"] / base["sideslip_rmse_deg"] if base["sideslip_rmse_deg"] > 0 else math.nan
             out[f"{name}/{mode}"] = s
     return out
 
 
 def format_table(result: dict) -> str:
-    lines = [f"{Path(result['bag']).name} (wheel_radius {result['wheel_radius']:.5f} m)",
+    lines = [f"{Path(result['bag']).name} (wheel_radius {result['wheel_radius']:.5f} m, "
+             f"roll compensation {result.get('roll', DEFAULT_ROLL)})",
              f"{'estimator':<16}{'beta RMSE deg':>14}{'vy MAE':>9}{'vy RMSE':>9}{'vx RMSE':>9}{'ratio':>8}"]
     for key, s in result.items():
         if not isinstance(s, dict):
@@ -248,10 +289,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--wheel-radius", type=float, default=None, help="override vehicle.wheel_radius [m]")
     ap.add_argument("--filter", action="append", choices=FILTERS, help="default: all")
     ap.add_argument("--start", type=float, default=5.0, help="score from this time [s]")
+    ap.add_argument("--roll", choices=ROLL_SOURCES, default=DEFAULT_ROLL,
+                    help="roll compensation of our filters' ay: ground-truth attitude (ideal fusion) or none")
     args = ap.parse_args(argv)
     for bag in args.bags:
         result = compare_state_filters(bag, vehicle=args.vehicle, wheel_radius=args.wheel_radius,
-                                       start=args.start, filters=args.filter or FILTERS)
+                                       start=args.start, filters=args.filter or FILTERS, roll=args.roll)
         print(format_table(result))
         print()
     return 0
