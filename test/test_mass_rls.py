@@ -198,3 +198,28 @@ def test_config_from_mapping():
     assert cfg.forgetting_factor == 0.999 and cfg.torque_regression == [1.0, 2.0, 3.0]
     with pytest.raises(ValueError, match="bogus"):
         MassRLSConfig.from_mapping({"bogus": 1})
+
+
+@pytest.mark.parametrize("bias_deg", [0.3, -0.2])
+def test_a_lasting_grade_error_is_in_the_published_variance(bias_deg):
+    """A grade error that stays (an accelerometer bias no GNSS observes) biases the mass, and
+    the residuals cannot show it: the published variance must carry it. With the bias as large
+    as its prior sigma the error is one sigma (NEES ~ 1): a variance half as large would fail
+    the bound, as the residuals' variance alone fails it by orders of magnitude."""
+    mass = 1580.0
+    t, v, a, slope, torque, omega, gear, force = _synthetic_drive(AUDI, mass, n=12000)
+    slope_sigma = math.radians(0.3)              # the bias prior, as a grade
+    bias_variance = (AUDI.gravity * slope_sigma) ** 2
+    est = LongitudinalMassEstimator(AUDI, MassRLSConfig(drive_force_kind="propulsion"))
+    for k in range(len(t)):
+        est.step(t[k], v[k], a[k], slope[k] + math.radians(bias_deg), drive_force=force[k], gear=gear[k],
+                 regressor_bias_variance=bias_variance)
+    error = est.mass - mass
+    assert abs(error) / mass > 0.02                          # the grade error is there
+    assert error ** 2 <= 4.0 * est.variance                  # within 2 sigma
+    residual_only = est.variance - est.bias_variance
+    assert error ** 2 / residual_only > 100.0                # the residuals cannot see it
+    if bias_deg == 0.3:                                      # bias = published sigma: NEES ~ 1
+        nees = error ** 2 / est.variance
+        assert 0.6 < nees < 1.6, f"NEES {nees:.2f}"
+        assert not 0.6 < error ** 2 / (0.5 * est.variance) < 1.6    # half the variance: caught

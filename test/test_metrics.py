@@ -78,3 +78,26 @@ def test_estimate_lag_known_shift():
     assert m.estimate_lag(t, truth, t, truth) == pytest.approx(0.0, abs=1e-9)
     assert math.isnan(m.estimate_lag([0.0, 1.0], [0.0, 1.0], t, truth))
     assert math.isnan(m.estimate_lag(t, truth, t, np.ones_like(t)))   # constant truth
+
+
+def test_consistency_of_an_honest_and_of_a_too_small_variance():
+    from vehicle_estimation.tools.metrics import consistency
+
+    rng = np.random.default_rng(4)
+    error = rng.normal(0.0, 2.0, 200_000)
+    honest = consistency(error, 4.0)
+    assert honest["within_1sigma"] == pytest.approx(0.683, abs=0.005)
+    assert honest["within_2sigma"] == pytest.approx(0.954, abs=0.005)
+    assert honest["within_3sigma"] == pytest.approx(0.997, abs=0.002)
+    assert honest["nees"] == pytest.approx(1.0, abs=0.02)
+    # a variance half as large as it should be: NEES 2, and 2 sigma holds only 84 %
+    small = consistency(error, 2.0)
+    assert small["nees"] == pytest.approx(2.0, abs=0.04)
+    assert small["within_2sigma"] == pytest.approx(0.843, abs=0.005)
+    # the converged flag selects; non-finite and non-positive variances are left out
+    flag = np.arange(error.size) % 2 == 0
+    both = consistency(np.r_[error, 1.0, np.nan], np.r_[np.full(error.size, 4.0), 0.0, 4.0], np.r_[flag, 1, 1])
+    assert both["n"] == error.size
+    assert both["converged_share"] == pytest.approx(0.5)
+    assert both["converged_nees"] == pytest.approx(1.0, abs=0.03)
+    assert both["converged_beyond_3sigma"] == pytest.approx(0.0027, abs=0.001)

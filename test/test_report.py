@@ -170,3 +170,28 @@ def test_report_sqlite3_bag_with_namespace(tmp_path):
     assert res["groups"]["mass"]["convergence_rate_steps"] is None
     assert res["groups"]["slope"] == {"status": "no data"}
     assert res["figures"] == ["mass.png"]
+
+
+def test_consistency_group_checks_each_published_variance():
+    t = np.arange(0.0, 40.0, 0.1)
+    truth = {"t": t, "value": np.full(t.size, 0.05)}
+    # slope error +-0.009 with sigma 0.01, flagged converged after 20 s
+    slope = {"t": t, "value": 0.05 + np.where(np.arange(t.size) % 2, 0.009, -0.009),
+             "variance": np.full(t.size, 1e-4), "converged": (t >= 20.0).astype(float)}
+    state = {"t": t, "vx": np.full(t.size, 10.5), "vy": np.zeros(t.size), "yaw_rate": np.zeros(t.size),
+             "var_vx": np.full(t.size, 0.0625), "var_vy": np.full(t.size, 1.0), "var_yaw_rate": np.zeros(t.size)}
+    gt_state = {"t": t, "vx": np.full(t.size, 10.0), "vy": np.zeros(t.size), "yaw_rate": np.zeros(t.size)}
+    data = {"estimation/road_slope": slope, "ground_truth/road_slope": truth,
+            "estimation/vehicle_state": state, "ground_truth/vehicle_state": gt_state}
+    groups, series = report.compute_groups(data, warmup_s=5.0)
+    c = groups["consistency"]
+    # yaw rate: no variance published, nothing to check
+    assert c["status"] == "ok" and set(series["consistency"]) == {"slope", "vx", "vy"}
+    assert c["slope"]["n"] == t.size - 50                          # after the warm-up
+    assert c["slope"]["within_1sigma"] == pytest.approx(1.0)
+    assert c["slope"]["nees"] == pytest.approx(0.81)
+    assert c["slope"]["converged_share"] == pytest.approx(200 / 350)
+    assert c["vx"]["nees"] == pytest.approx(4.0)                   # 0.5 m/s error, sigma 0.25
+    assert c["vx"]["within_1sigma"] == pytest.approx(0.0)
+    text = "\n".join(report.format_consistency({k: v for k, v in c.items() if isinstance(v, dict)}))
+    assert "slope" in text and "NEES" in text

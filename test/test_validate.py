@@ -76,6 +76,12 @@ def test_validate_command_end_to_end(tmp_path):
         assert row["ratio"] == pytest.approx(row["ours"]["rmse"] / row["base"]["rmse"])
     assert rows[("sim_hills", "slope")]["independent"] is False
     assert rows[("commonroad_dlc", "sideslip")]["ours"]["rmse"] < 1.0      # degrees: no divergence
-    assert "| commonroad_dlc | sideslip [deg]" in (out / "validation.md").read_text()
+    text = (out / "validation.md").read_text()
+    assert "| commonroad_dlc | sideslip [deg]" in text
+    # every estimate with a published variance is checked against its own sigma
+    honesty = {(r["case"], r["quantity"]): r for r in result["consistency"]}
+    for key in (("commonroad_dlc", "sideslip"), ("sim_hills", "slope"), ("sim_hills", "mass")):
+        assert honesty[key]["n"] > 0 and math.isfinite(honesty[key]["nees"]), honesty.get(key)
+    assert "| sim_hills (ours) | slope |" in text and "converged NEES" in text
     assert (out / "commonroad_dlc.png").stat().st_size > 10_000
     assert (out / "sim_hills.png").stat().st_size > 10_000

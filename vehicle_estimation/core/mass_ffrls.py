@@ -203,8 +203,12 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
              drive_force: float = math.nan, drive_torque: float = math.nan,
              engine_torque: float = math.nan, engine_speed: float = math.nan,
              engine_load: float = math.nan, gear: float = math.nan,
-             brake_torque: float = 0.0, heading: float = math.nan) -> bool:
+             brake_torque: float = 0.0, heading: float = math.nan,
+             regressor_bias_variance: float = 0.0) -> bool:
         """Process one sample; return True when it updated the estimate (Eq. 30).
+
+        ``regressor_bias_variance`` [m^2/s^4]: the variance of a lasting error in Omega_m (the
+        accelerometer bias), see :class:`~vehicle_estimation.core.mass_rls.ForgettingMassEstimator`.
 
         ``t`` [s], ``vx`` longitudinal speed [m/s], ``ax`` the longitudinal acceleration
         dv_x/dt [m/s^2] (not the IMU specific force, which contains g sin(theta)), ``slope``
@@ -282,4 +286,4 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
             # Overflow on absurd but finite inputs: keep the last estimate, as Eq. (31) does.
             self.rls.theta, self.rls.p, self.rls.last_residual = theta_before, p_before, residual_before
             return self._reject("nan")
-        return self._accepted(omega, y, residual * residual)
+        return self._accepted(omega, y, residual * residual, regressor_bias_variance)

@@ -824,6 +824,11 @@ class FusionImuBias:
         ba, bg, mount, self.accel_x_variance = entry
         return mount @ (f - ba), mount @ (w - bg)
 
+    def accel_x_variance_at(self, t: float) -> float | None:
+        """The along-track bias variance published for stamp ``t``, None without the fusion."""
+        entry = self.history.at(t)
+        return None if entry is None else entry[3]
+
     def clear(self) -> None:
         self.history.clear()
         self.valid = False

@@ -88,7 +88,7 @@ class UpdateWindow:
     that their least-squares slope can serve as the acceleration.
     """
 
-    FIELDS = ("vx", "slope", "drive_force", "engine_torque", "engine_speed", "engine_load")
+    FIELDS = ("vx", "slope", "bias_variance", "drive_force", "engine_torque", "engine_speed", "engine_load")
 
     def __init__(self) -> None:
         self.clear()
@@ -249,8 +249,8 @@ class MassNode(EstimatorNode):
         if uses_imu:
             self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
-        if uses_imu:
-            self.subscribe_imu_bias(self.bias)
+        # The bias also says how far a lasting error in the regressor may go (the variance).
+        self.subscribe_imu_bias(self.bias)
         self.needs_heading = self.method == "rls" and self.config.wind_compensation
         if self.speed_source == "fusion" or self.needs_heading:
             self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, odometry_entry)
@@ -326,6 +326,7 @@ class MassNode(EstimatorNode):
         if speed is not None:
             brake = self._brake_at(t)
             window.add(t, brake, pt.gear, vx=speed, slope=slope_item.value if slope_ok else 0.0,
+                       bias_variance=self._regressor_bias_variance(t, slope_item if slope_ok else None),
                        drive_force=pt.drive_force, engine_torque=pt.engine_torque,
                        engine_speed=pt.engine_speed, engine_load=pt.engine_load)
         if not math.isnan(window.start) and t - window.start >= 1.0 / self.update_rate - STAMP_TOLERANCE_S:
@@ -346,7 +347,7 @@ class MassNode(EstimatorNode):
                                engine_speed=window.mean("engine_speed"),
                                engine_load=window.mean("engine_load"), gear=window.gear,
                                brake_torque=window.brake if self.method == "rls" else window.brake_mean,
-                               **extra)
+                               regressor_bias_variance=window.mean("bias_variance"), **extra)
             window.clear()
         self._publish_and_persist(t)
 
@@ -357,6 +358,17 @@ class MassNode(EstimatorNode):
         if self.persist_path and t - self._last_persist >= self.persist_period - STAMP_TOLERANCE_S:
             self._last_persist = t
             self._persist(t)
+
+    def _regressor_bias_variance(self, t: float, slope_item) -> float:
+        """Variance of a lasting error in a + g sin(slope) [m^2/s^4]: the fusion's bias
+        variance (in the slope and the IMU acceleration alike), else, without the fusion,
+        the slope's whole variance as if it were all lasting."""
+        variance = self.bias.accel_x_variance_at(t)
+        if variance is not None:
+            return variance
+        if slope_item is None:
+            return math.nan
+        return (self.vehicle.gravity * math.cos(slope_item.value)) ** 2 * slope_item.variance
 
     def _window_accel(self, window: UpdateWindow, slope: float) -> float:
         """Longitudinal acceleration dv/dt over the window.

@@ -248,3 +248,43 @@ def estimate_lag(t_est: ArrayLike, y_est: ArrayLike, t_true: ArrayLike, y_true: 
         if denom > 0.0:
             lag += float(np.clip(0.5 * (a - c) / denom, -0.5, 0.5))
     return lag * dt
+
+
+# --------------------------------------------------------------------- consistency
+#: Shares of a Gaussian within 1, 2 and 3 sigma: what an honest variance gives.
+GAUSSIAN_WITHIN = {1: 0.6827, 2: 0.9545, 3: 0.9973}
+
+
+def consistency(error: ArrayLike, variance: ArrayLike, converged: ArrayLike | None = None) -> dict[str, float]:
+    """Is a published variance honest? Errors against their own sigma.
+
+    For the finite samples with a positive variance: the shares of ``|error|`` within 1, 2 and
+    3 sigma (an honest Gaussian estimate: 68 / 95 / 99.7 %) and the mean normalised estimation
+    error squared, NEES = mean(error^2 / variance) (honest: 1; above: the variance is too small).
+    With ``converged`` (the estimate's own flag), the same over the flagged samples
+    (``converged_*``) and the share flagged (``converged_share``); a flagged sample beyond 3 sigma
+    is what a controller must never get (``converged_beyond_3sigma``).
+    """
+    e = np.atleast_1d(np.asarray(error, dtype=float))
+    v = np.broadcast_to(np.atleast_1d(np.asarray(variance, dtype=float)), e.shape)
+    ok = np.isfinite(e) & np.isfinite(v) & (v > 0.0)
+    c = (np.ones(e.shape, dtype=bool) if converged is None
+         else np.broadcast_to(np.atleast_1d(np.asarray(converged, dtype=float)) > 0.5, e.shape))
+
+    def shares(sel: np.ndarray, prefix: str) -> dict[str, float]:
+        n = int(sel.sum())
+        if n == 0:
+            return {f"{prefix}n": 0, **{f"{prefix}within_{k}sigma": math.nan for k in GAUSSIAN_WITHIN},
+                    f"{prefix}nees": math.nan}
+        z2 = e[sel] ** 2 / v[sel]
+        return {f"{prefix}n": n, **{f"{prefix}within_{k}sigma": float(np.mean(z2 <= k * k)) for k in GAUSSIAN_WITHIN},
+                f"{prefix}nees": float(np.mean(z2))}
+
+    out = shares(ok, "")
+    if converged is not None:
+        flagged = ok & c
+        out.update(shares(flagged, "converged_"))
+        out["converged_share"] = float(flagged.sum() / ok.sum()) if ok.any() else math.nan
+        out["converged_beyond_3sigma"] = (float(np.mean(e[flagged] ** 2 > 9.0 * v[flagged]))
+                                          if flagged.any() else math.nan)
+    return out

@@ -58,10 +58,11 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
     if msgtype == "std_msgs/msg/Float64":
         return {"value": float(msg.data)}
     if msgtype == "geometry_msgs/msg/Vector3Stamped":  # stamped companion: value, variance, converged
-        return {"value": float(msg.vector.x), "variance": float(msg.vector.y)}
+        return {"value": float(msg.vector.x), "variance": float(msg.vector.y), "converged": float(msg.vector.z)}
     if msgtype in ("geometry_msgs/msg/TwistWithCovarianceStamped",):
-        tw = msg.twist.twist
-        return {"vx": tw.linear.x, "vy": tw.linear.y, "yaw_rate": tw.angular.z}
+        tw, cov = msg.twist.twist, msg.twist.covariance
+        return {"vx": tw.linear.x, "vy": tw.linear.y, "yaw_rate": tw.angular.z,
+                "var_vx": float(cov[0]), "var_vy": float(cov[7]), "var_yaw_rate": float(cov[35])}
     if msgtype == "nav_msgs/msg/Odometry":
         tw = msg.twist.twist
         pos = msg.pose.pose.position
@@ -360,6 +361,72 @@ def _plot_fusion(plots, out: Path) -> str:
     return _save(fig, out / "fusion.png")
 
 
+#: Estimates whose variance is checked against the truth: (name, estimate topic, key, variance
+#: key, flag key or None, truth topic, truth key, truth interpolation, unit, display scale).
+CONSISTENCY_SPEC = (
+    ("mass", "estimation/mass", "value", "variance", "converged", topics.GT_MASS, "value", "previous", "kg", 1.0),
+    ("slope", "estimation/road_slope", "value", "variance", "converged", topics.GT_ROAD_SLOPE, "value",
+     "linear", "deg", 180.0 / math.pi),
+    ("sideslip", "estimation/sideslip", "value", "variance", "converged", topics.GT_SIDESLIP, "value",
+     "linear", "deg", 180.0 / math.pi),
+    ("vx", "estimation/vehicle_state", "vx", "var_vx", None, topics.GT_VEHICLE_STATE, "vx", "linear", "m/s", 1.0),
+    ("vy", "estimation/vehicle_state", "vy", "var_vy", None, topics.GT_VEHICLE_STATE, "vy", "linear", "m/s", 1.0),
+    ("yaw_rate", "estimation/vehicle_state", "yaw_rate", "var_yaw_rate", None, topics.GT_VEHICLE_STATE,
+     "yaw_rate", "linear", "deg/s", 180.0 / math.pi),
+)
+
+
+def consistency_series(data: dict[str, Series], warmup_s: float) -> dict[str, dict[str, np.ndarray]]:
+    """Per checked estimate: stamps, error, variance and flag on the estimate stamps after the
+    warm-up (the mass over the last half, as every mass figure)."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for name, topic, key, var_key, flag_key, truth_topic, truth_key, mode, unit, scale in CONSISTENCY_SPEC:
+        est, true = data.get(topic), data.get(truth_topic)
+        if est is None or true is None or var_key not in est:
+            continue
+        if not np.any(np.isfinite(est[var_key]) & (est[var_key] > 0.0)):
+            continue            # no variance published (a zero covariance): nothing to check
+        # align() on the sample index keeps each estimate's own variance and flag with it
+        t, idx, truth = metrics.align(est["t"], np.arange(est["t"].size, dtype=float), true["t"], true[truth_key],
+                                      mode=mode, hold_last=mode == "previous")
+        if t.size == 0:
+            continue
+        i = idx.astype(int)
+        start = t[0] + (0.5 * (t[-1] - t[0]) if name == "mass" else warmup_s)
+        sel = t >= start
+        out[name] = {"t": t[sel], "error": (est[key][i] - truth)[sel], "variance": est[var_key][i][sel],
+                     "converged": est[flag_key][i][sel] if flag_key and flag_key in est else None,
+                     "unit": unit, "scale": scale}
+    return out
+
+
+def _consistency_group(data, warmup_s):
+    series = consistency_series(data, warmup_s)
+    res = {name: {"unit": "-", **metrics.consistency(s["error"], s["variance"], s["converged"])}
+           for name, s in series.items()}
+    return (res or None), (series or None)
+
+
+def _plot_consistency(series, out: Path) -> str:
+    plt = _plt()
+    fig, axes = plt.subplots(len(series), 1, figsize=(10, 2.2 * len(series)), sharex=True, squeeze=False)
+    for ax, (name, s) in zip(axes[:, 0], series.items()):
+        k = s["scale"]
+        sigma2 = 2.0 * np.sqrt(np.maximum(s["variance"], 0.0)) * k
+        ax.fill_between(s["t"], -sigma2, sigma2, color="tab:blue", alpha=0.2, label="±2σ published")
+        ax.plot(s["t"], s["error"] * k, color="tab:red", lw=0.8, label="error")
+        if s["converged"] is not None:
+            flagged = s["converged"] > 0.5
+            ax.plot(s["t"][~flagged], np.zeros(int((~flagged).sum())), ".", color="grey", ms=1,
+                    label="not converged")
+        ax.set_ylabel(f"{name} [{s['unit']}]")
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper right", fontsize=7)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle("Error against the published ±2σ")
+    return _save(fig, out / "consistency.png")
+
+
 # --------------------------------------------------------------------- report
 WANTED = ("estimation/mass", topics.GT_MASS, "estimation/road_slope", topics.GT_ROAD_SLOPE,
           "estimation/vehicle_state", topics.GT_VEHICLE_STATE, "estimation/sideslip",
@@ -367,9 +434,11 @@ WANTED = ("estimation/mass", topics.GT_MASS, "estimation/road_slope", topics.GT_
 
 
 GROUP_BUILDERS: dict[str, Callable] = {
-    "mass": _mass_group, "slope": _slope_group, "vehicle_state": _state_group, "fusion": _fusion_group}
+    "mass": _mass_group, "slope": _slope_group, "vehicle_state": _state_group, "fusion": _fusion_group,
+    "consistency": _consistency_group}
 PLOTTERS: dict[str, Callable] = {
-    "mass": _plot_mass, "slope": _plot_slope, "vehicle_state": _plot_state, "fusion": _plot_fusion}
+    "mass": _plot_mass, "slope": _plot_slope, "vehicle_state": _plot_state, "fusion": _plot_fusion,
+    "consistency": _plot_consistency}
 
 
 def compute_groups(data: dict[str, Series], warmup_s: float = DEFAULT_WARMUP_S) -> tuple[dict, dict]:
@@ -427,6 +496,8 @@ def format_table(report: dict) -> str:
              f"{'group':<14}{'quantity':<12}{'metric':<34}{'value':>12}"]
     lines.append("-" * len(lines[-1]))
     for group, res in report["groups"].items():
+        if group == "consistency":
+            continue
         if res.get("status") != "ok":
             lines.append(f"{group:<14}{'-':<12}{'no data':<34}{'':>12}")
             continue
@@ -443,7 +514,33 @@ def format_table(report: dict) -> str:
                     continue
                 label = f"{key} [{sub.get('unit', '')}]" if key in ("mae", "rmse", "bias", "max_abs_error") else key
                 lines.append(f"{group:<14}{qty:<12}{label:<34}{_fmt(value):>12}")
+    consistency = report["groups"].get("consistency", {})
+    if consistency.get("status") == "ok":
+        lines.append("")
+        lines.extend(format_consistency({k: v for k, v in consistency.items() if isinstance(v, dict)}))
     return "\n".join(lines)
+
+
+def _pct(x: Any) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{100.0 * x:.0f} %"
+
+
+def format_consistency(rows: dict[str, dict]) -> list[str]:
+    """Shares of the errors within 1/2/3 sigma of the published variance (Gaussian: 68/95/99.7 %)
+    and NEES (honest: 1), over every sample and over those flagged converged."""
+    head = (f"{'consistency':<12}{'n':>7}{'1σ':>7}{'2σ':>7}{'3σ':>7}{'NEES':>9}"
+            f"{'conv.':>8}{'conv. 2σ':>10}{'conv. >3σ':>11}{'conv. NEES':>12}")
+    lines = [head, "-" * len(head)]
+    for name, c in rows.items():
+        def num(key, spec=".3g"):
+            v = c.get(key)
+            return "n/a" if v is None or not math.isfinite(v) else format(v, spec)
+        lines.append(f"{name:<12}{c.get('n', 0):>7}{_pct(c.get('within_1sigma')):>7}{_pct(c.get('within_2sigma')):>7}"
+                     f"{_pct(c.get('within_3sigma')):>7}{num('nees'):>9}{_pct(c.get('converged_share')):>8}"
+                     f"{_pct(c.get('converged_within_2sigma')):>10}{_pct(c.get('converged_beyond_3sigma')):>11}"
+                     f"{num('converged_nees'):>12}")
+    lines.append("honest: 68 / 95 / 99.7 % within 1/2/3σ, NEES 1; NEES above 1: the variance is too small")
+    return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:

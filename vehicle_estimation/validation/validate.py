@@ -149,7 +149,19 @@ def _row(case: Case, quantity: str, unit: str, estimator: str, baseline: str,
 
 def _read_estimates(bag: Path) -> dict:
     from ..tools.report import read_bag
-    return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.GT_MASS, T.GT_ROAD_SLOPE])
+    return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.GT_MASS, T.GT_ROAD_SLOPE,
+                          T.GT_SIDESLIP, T.GT_VEHICLE_STATE])
+
+
+def consistency_rows(case: Case, est: dict) -> list[dict]:
+    """Per estimate with a variance: its errors against its own sigma (tools.metrics.consistency)."""
+    from ..tools.report import consistency_series
+
+    rows = []
+    for quantity, s in consistency_series(est, WARMUP_S).items():
+        rows.append({"case": case.name, "independent": case.independent, "quantity": quantity,
+                     **metrics.consistency(s["error"], s["variance"], s["converged"])})
+    return rows
 
 
 def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str) -> tuple[list, dict]:
@@ -270,7 +282,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
         raise ValueError(f"unknown case group(s) {unknown} (known: {', '.join(CASE_BUILDERS)})")
     methods = _shipped_methods()
     all_cases = [c for g in groups for c in CASE_BUILDERS[g](out / "bags", quick=quick)]
-    rows, replays = [], []
+    rows, replays, consistency = [], [], []
     for case in all_cases:
         run_dir = out / "runs" / case.name
         estimates = run_dir / "estimates"
@@ -284,6 +296,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
             raise RuntimeError(f"replay of {case.name} failed: {exc}; logs in {run_dir / 'logs'}") from exc
         vehicle = load_vehicle_params(case.vehicle)
         est = _read_estimates(estimates)     # once: both kinds score the same recording
+        consistency += consistency_rows(case, est)
         series: dict = {}
         if "lateral" in case.kinds:
             r, s = lateral_rows(case, est, vehicle, methods["vehicle_state"])
@@ -298,7 +311,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
                         "vehicle": str(case.vehicle), "independent": case.independent, "notes": case.notes,
                         "lossless": stats.lossless, "wall_s": time.monotonic() - wall})
     result = {"params": "params/estimation.yaml", "methods": methods, "warmup_s": WARMUP_S,
-              "quick": quick, "cases": replays, "rows": rows}
+              "quick": quick, "cases": replays, "rows": rows, "consistency": consistency}
     (out / "validation.json").write_text(json.dumps(result, indent=2, default=float) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(format_table(result) + "\n", encoding="utf-8")
     return result
@@ -345,6 +358,32 @@ def format_table(result: dict) -> str:
     lines.append("ratio = our RMSE / the baseline's (below 1: ours better); mass rows in % of the true mass, "
                  f"over the last half; other metrics after the first {result['warmup_s']:g} s; shipped methods: "
                  + ", ".join(f"{k} {v}" for k, v in result["methods"].items()))
+    if result.get("consistency"):
+        lines += ["", format_consistency(result["consistency"])]
+    return "\n".join(lines)
+
+
+def format_consistency(rows: list[dict]) -> str:
+    """Honesty of the published variances: errors within 1/2/3 sigma, NEES, and the same over
+    the samples flagged converged."""
+    def pct(x):
+        return "n/a" if x is None or not math.isfinite(x) else f"{100.0 * x:.0f} %"
+
+    def num(x):
+        return "n/a" if x is None or not math.isfinite(x) else f"{x:.2f}"
+
+    lines = ["| case | estimate | within 1σ | 2σ | 3σ | NEES | flagged converged | converged within 2σ | "
+             "converged beyond 3σ | converged NEES |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        case = r["case"] + ("" if r["independent"] else " (ours)")
+        lines.append(f"| {case} | {r['quantity']} | {pct(r['within_1sigma'])} | {pct(r['within_2sigma'])} | "
+                     f"{pct(r['within_3sigma'])} | {num(r['nees'])} | {pct(r.get('converged_share'))} | "
+                     f"{pct(r.get('converged_within_2sigma'))} | {pct(r.get('converged_beyond_3sigma'))} | "
+                     f"{num(r.get('converged_nees'))} |")
+    lines.append("")
+    lines.append("An honest variance: 68 / 95 / 99.7 % of the errors within 1 / 2 / 3σ and NEES 1 (above 1: "
+                 "the published variance is too small); mass over the last half, the rest after the warm-up.")
     return "\n".join(lines)
 
 
