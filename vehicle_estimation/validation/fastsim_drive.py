@@ -79,8 +79,6 @@ Needs ``pip install fastsim==3.1.0`` (in the ``test`` and ``validation`` extras)
 from __future__ import annotations
 
 import argparse
-import itertools
-import math
 import types
 import warnings
 from collections.abc import Sequence
@@ -89,9 +87,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import topics as T
-from ..core.geodesy import LocalTangentPlane
-from ..sim import bag as simbag
+from . import road_drive as rd
 from .vehicle_yaml import format_vehicle_yaml
 
 FASTSIM_VERSION = "3.1.0"
@@ -132,26 +128,17 @@ def _fastsim():
 
 
 # --------------------------------------------------------------------------- the drive
-def _smoothstep(x):
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
+_smoothstep = rd.smoothstep
 
 
 def speed_trace(t) -> np.ndarray:
     """The cycle's speed [m/s] at times ``t`` [s] (``SPEED_POINTS`` joined by smoothsteps)."""
-    t = np.asarray(t, dtype=float)
-    knots = np.asarray(SPEED_POINTS, dtype=float)
-    v = np.full(t.shape, knots[0, 1])
-    for (t0, v0), (t1, v1) in itertools.pairwise(knots):
-        v = v + (v1 - v0) * _smoothstep((t - t0) / (t1 - t0))
-    return v
+    return rd.knot_trace(t, SPEED_POINTS)
 
 
 def grade_of_distance(s) -> np.ndarray:
     """Road grade (rise over run) at the distance ``s`` [m] along the road."""
-    s = np.asarray(s, dtype=float)
-    g = sum(a * np.sin(2.0 * np.pi * s / wl + ph) for a, wl, ph in GRADE_TERMS)
-    return g * _smoothstep(s / LEVEL_START_M)
+    return rd.sine_grade(s, GRADE_TERMS, LEVEL_START_M)
 
 
 def cycle_arrays(duration: float | None = None, rate_hz: int = SIM_RATE_HZ) -> dict[str, np.ndarray]:
@@ -261,29 +248,11 @@ def drag_power_coefficient(probe_speed: float = 20.0) -> float:
 def truth_signals(drive: Drive) -> dict[str, np.ndarray]:
     """Truth at every FASTSim step (base_link / ENU odom at the start)."""
     h = drive.history
-    t, v = drive.t, h["speed"]
-    dt = float(t[1] - t[0])
-    slope = np.arctan(h["grade"])
-    slope_rate = np.gradient(slope, dt)
-    accel = np.gradient(v, dt)
-    dist_h = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] * np.cos(slope[1:]) + v[:-1] * np.cos(slope[:-1])) * dt)])
-    up = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] * np.sin(slope[1:]) + v[:-1] * np.sin(slope[:-1])) * dt)])
-    psi = math.radians(HEADING_DEG)
-    zero = np.zeros_like(t)
-    return {
-        "t": t, "vx": v, "vy": zero, "yaw_rate": zero, "sideslip": zero, "roll": zero,
-        "pitch": -slope, "yaw": np.full_like(t, psi), "slope": slope,
-        "x": dist_h * math.cos(psi), "y": dist_h * math.sin(psi), "z": up,
-        "wx": zero, "wy": -slope_rate, "wz": zero, "ax": accel,
-        "accel": np.column_stack([accel + G_MODEL * np.sin(slope), zero,
-                                  G_MODEL * np.cos(slope) + v * slope_rate]),
-        "mass": np.full_like(t, drive.mass),
-    }
+    return rd.road_truth(drive.t, h["speed"], np.arctan(h["grade"]), mass=drive.mass, gravity=G_MODEL,
+                         heading_deg=HEADING_DEG)
 
 
-def _every(t: np.ndarray, rate: float) -> np.ndarray:
-    step = round(1.0 / (rate * (t[1] - t[0])))
-    return np.arange(0, t.size, step)
+_every = rd.every
 
 
 def sensor_result(drive: Drive, *, seed: int = 0):
@@ -296,32 +265,18 @@ def sensor_result(drive: Drive, *, seed: int = 0):
     radius = float(drive.vehicle["veh.chassis.wheel_radius_meters"])
 
     # IMU
-    i = _every(t, IMU_RATE_HZ)
-    a_bias = ACCEL_BIAS * rng.choice([-1.0, 1.0], 3)
-    g_bias = GYRO_BIAS * rng.choice([-1.0, 1.0], 3)
-    gyro = np.column_stack([tru["wx"], tru["wy"], tru["wz"]])
-    accel = tru["accel"][i] + a_bias + ACCEL_NOISE * rng.standard_normal((i.size, 3))
-    gyro = gyro[i] + g_bias + GYRO_NOISE * rng.standard_normal((i.size, 3))
-    imu = {"t": t[i], "accel": accel, "gyro": gyro, "gyro_cov": np.full(3, GYRO_NOISE ** 2),
-           "accel_cov": np.full(3, ACCEL_NOISE ** 2), "bias_accel": a_bias, "bias_gyro": g_bias}
+    imu = rd.imu_samples(rng, tru, _every(t, IMU_RATE_HZ), accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE,
+                         accel_bias=ACCEL_BIAS, gyro_bias=GYRO_BIAS)
 
     # CAN speed, wheel speeds and brake torques
     j = _every(t, CAN_RATE_HZ)
     v = tru["vx"][j]
-    speed = {"t": t[j], "v": np.round(v * 3.6) / 3.6, "var": np.full(j.size, (1.0 / 3.6) ** 2 / 12.0)}
+    speed = rd.can_speed(t[j], v)
     # a step's force placed at its stamp: the mean of the steps ending at and after it
     nxt = np.minimum(j + 1, t.size - 1)
     brake = 0.5 * (frc["braking"][j] + frc["braking"][nxt]) * radius          # total [N m]
-    shares = np.array([BRAKE_FRONT_SHARE, BRAKE_FRONT_SHARE, 1.0 - BRAKE_FRONT_SHARE,
-                       1.0 - BRAKE_FRONT_SHARE]) / 2.0
-    wheel = np.where(v[:, None] > 0.0, v[:, None] / radius + WHEEL_SPEED_NOISE * rng.standard_normal((j.size, 4)), 0.0)
-    position = np.full((j.size, 5), np.nan)
-    position[:, 4] = 0.0
-    velocity = np.full((j.size, 5), np.nan)
-    velocity[:, :4] = wheel
-    effort = np.full((j.size, 5), np.nan)
-    effort[:, :4] = brake[:, None] * shares
-    joints = {"t": t[j], "position": position, "velocity": velocity, "effort": effort}
+    joints = rd.wheel_joints(rng, t[j], v, brake, radius=radius, front_share=BRAKE_FRONT_SHARE,
+                             noise=WHEEL_SPEED_NOISE)
 
     # powertrain: the drive force only
     drive_force = 0.5 * (frc["propulsion"][j] + frc["propulsion"][nxt])
@@ -331,35 +286,19 @@ def sensor_result(drive: Drive, *, seed: int = 0):
                   "drive_force": drive_force}
 
     # GNSS
-    k = _every(t, GNSS_RATE_HZ)
-    enu = np.column_stack([tru["x"][k], tru["y"][k], tru["z"][k]])
-    enu = enu + rng.standard_normal((k.size, 3)) * np.array([GNSS_NOISE_H, GNSS_NOISE_H, GNSS_NOISE_V])
-    lat, lon, alt = LocalTangentPlane(*ORIGIN).to_geodetic(enu)
-    gnss = {"t": t[k], "lat": np.asarray(lat), "lon": np.asarray(lon), "alt": np.asarray(alt),
-            "status": np.zeros(k.size, dtype=np.int64),
-            "cov": np.array([GNSS_NOISE_H ** 2, GNSS_NOISE_H ** 2, GNSS_NOISE_V ** 2])}
+    gnss = rd.gnss_samples(rng, tru, _every(t, GNSS_RATE_HZ), origin=ORIGIN, noise_h=GNSS_NOISE_H,
+                           noise_v=GNSS_NOISE_V)
 
     m = _every(t, TRUTH_RATE_HZ)
-    truth = {key: np.asarray(tru[key])[m] for key in
-             ("t", "vx", "vy", "yaw_rate", "sideslip", "roll", "pitch", "yaw", "x", "y", "z", "wx", "wy", "wz",
-              "slope", "mass", "ax")}
+    truth = rd.truth_samples(tru, m)
     truth["drive_force"] = 0.5 * (frc["propulsion"][m] + frc["propulsion"][np.minimum(m + 1, t.size - 1)])
     return types.SimpleNamespace(
         sensors={"imu": imu, "gnss": gnss, "speed": speed, "joint_states": joints, "powertrain": powertrain},
         truth=truth)
 
 
-def write_drive(result, path: Path, *, gnss: bool = True, wheels: bool = True) -> Path:
-    """Write a :func:`sensor_result` as an MCAP bag at ``path`` (stamps from 0 s); without
-    ``gnss/fix`` unless ``gnss``, without ``vehicle/joint_states`` unless ``wheels``."""
-    simbag.check_new_bag_path(path)
-    drop = set()
-    if not gnss:
-        drop.add(T.GNSS)
-    if not wheels:
-        drop.add(T.JOINT_STATES)
-    streams = [s for s in simbag.build_streams(result, t0_ns=0) if s[0] not in drop]
-    return simbag.write_streams(streams, path)
+#: Write a :func:`sensor_result` as a bag, with or without GNSS and wheels (shared: road_drive).
+write_drive = rd.write_drive
 
 
 # --------------------------------------------------------------------------- vehicle file
