@@ -1,24 +1,22 @@
-"""Paper 003's calibration workflow end to end through the nodes, and every params file the
-package writes layered over every file it ships.
+"""Every params file the package writes, layered over every file it ships, and paper 003's
+calibrated file taken by the nodes.
 
 A car whose OBD-II reports only engine speed and load (PID 0C and 04: no torque, no drive
-force, no gear): one drive at a known mass goes through ``calibrate``; a second drive is
-replayed with ``--vehicle calibrated.yaml`` and the shipped params, and the mass must come out
-right. No other test takes a calibrated file through the nodes.
+force, no gear): one drive of our simulator at a known mass goes through ``calibrate``; its
+file must start every node over (and under) every shipped file, and give the rls node its
+fitted torque map. The same workflow end to end through the nodes, on the independent WLTP
+gear-shift tool's drives, is ``test/test_validation_wltp.py``. The vehicle files that the
+validation generators write (CommonRoad, FASTSim, WLTP) are layered here too.
 """
-
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import rclpy
-from rosbags.highlevel import AnyReader
 
 from vehicle_estimation.nodes.base import ParameterError
 from vehicle_estimation.nodes.fusion_node import FusionNode
@@ -106,27 +104,31 @@ def test_the_rls_node_takes_the_fitted_torque_map(calibrated):
         rclpy.shutdown(context=context)
 
 
-def test_a_calibrated_obd_only_car_through_the_nodes(calibrated, tmp_path):
-    """calibrate -> replay --vehicle calibrated.yaml with the shipped params: the mass within
-    +-5 % over the last half of a drive the calibration never saw (prior 1000 kg)."""
-    out, gears = calibrated
-    result = simulate(_obd_only_drive(seed=21))
-    assert len(set(result.truth["gear"][result.truth["vx"] > 3.0].tolist())) <= gears
-    bag = write_bag(result, tmp_path / "drive")
-    estimates = tmp_path / "estimates"
-    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(bag), "--record",
-                           str(estimates), "--vehicle", str(out), "--quiet"],
-                          capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "lossless: True" in proc.stdout
-    t, mass = [], []
-    with AnyReader([estimates]) as reader:
-        conns = [c for c in reader.connections if c.topic == "/estimation/mass_stamped"]
-        for conn, _, data in reader.messages(connections=conns):
-            msg = reader.deserialize(data, conn.msgtype)
-            t.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
-            mass.append(msg.vector.x)
-    t, mass = np.array(t), np.array(mass)
-    last_half = t >= t[0] + 0.5 * (t[-1] - t[0])
-    error = np.abs(mass[last_half] / AUDI.mass - 1.0)
-    assert error.max() < 0.05, f"last-half mass error up to {100 * error.max():.1f} %"
+def _written_vehicle_files() -> dict[str, str]:
+    """The vehicle files the validation generators write, by generator (installed ones only)."""
+    import importlib.util
+
+    from vehicle_estimation.validation import commonroad
+
+    files = {"commonroad": commonroad.params_yaml()}
+    if importlib.util.find_spec("fastsim") is not None:
+        from vehicle_estimation.validation import fastsim_drive
+        files["fastsim"] = fastsim_drive.params_yaml()
+    if importlib.util.find_spec("wltp") is not None:
+        from vehicle_estimation.validation import wltp_drive
+        files["wltp"] = wltp_drive.params_yaml()
+    return files
+
+
+def test_every_written_vehicle_file_layers_over_every_shipped_file(tmp_path):
+    written = _written_vehicle_files()
+    assert "commonroad" in written
+    for name, text in written.items():
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(text, encoding="utf-8")
+        for shipped in SHIPPED:
+            for files in ([path, shipped], [shipped, path]):
+                try:
+                    _start_every_node(files)
+                except ParameterError as exc:
+                    pytest.fail(f"{[f.name for f in files]}: {exc}")
