@@ -78,7 +78,6 @@ Needs ``pip install fastsim==3.1.0`` (in the ``test`` and ``validation`` extras)
 
 from __future__ import annotations
 
-import argparse
 import types
 import warnings
 from collections.abc import Sequence
@@ -401,18 +400,10 @@ def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None) -> 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m vehicle_estimation.validation.fastsim_drive",
-                                 description="Bags of a hilly NREL FASTSim 3 drive (2012 Ford Fusion) in our topic contract")
-    ap.add_argument("--out", type=Path, required=True, help="output folder (one bag per variant)")
-    ap.add_argument("--duration", type=float, default=None, help=f"drive length [s] (default {FULL_DURATION:g})")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
-    args = ap.parse_args(argv)
-    if args.write_params is not None:
-        args.write_params.write_text(params_yaml(), encoding="utf-8")
-    for path in generate(args.out, seed=args.seed, duration=args.duration):
-        print(path)
-    return 0
+    return rd.generator_main(argv, prog="python -m vehicle_estimation.validation.fastsim_drive",
+                             description="Bags of a hilly NREL FASTSim 3 drive (2012 Ford Fusion) in our topic contract",
+                             out_help="output folder (one bag per variant)", full_duration=FULL_DURATION, generate=generate,
+                             params_yaml=params_yaml)
 
 
 if __name__ == "__main__":

@@ -103,7 +103,6 @@ Needs ``pip install wltp==0.1.2a0`` (in the ``test`` and ``validation`` extras).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import types
@@ -441,19 +440,10 @@ def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None) -> 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m vehicle_estimation.validation.wltp_drive",
-                                 description="OBD-II-only bags of a hilly drive of the JRC WLTP gear-shift tool "
-                                             "in our topic contract")
-    ap.add_argument("--out", type=Path, required=True, help="output folder (one bag per drive and variant)")
-    ap.add_argument("--duration", type=float, default=None, help=f"drive length [s] (default {FULL_DURATION:g})")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
-    args = ap.parse_args(argv)
-    if args.write_params is not None:
-        args.write_params.write_text(params_yaml(), encoding="utf-8")
-    for path in generate(args.out, seed=args.seed, duration=args.duration):
-        print(path)
-    return 0
+    return rd.generator_main(argv, prog="python -m vehicle_estimation.validation.wltp_drive",
+                             description="OBD-II-only bags of a hilly drive of the JRC WLTP gear-shift tool in our topic contract",
+                             out_help="output folder (one bag per drive and variant)", full_duration=FULL_DURATION, generate=generate,
+                             params_yaml=params_yaml)
 
 
 if __name__ == "__main__":
