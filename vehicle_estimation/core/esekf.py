@@ -175,10 +175,10 @@ class FusionConfig:
     # unobservable. The paper's bias random walk then lets the split wander with whatever the
     # model gets wrong (on FASTSim's hilly drive the x bias reached +2 m/s^2 and the grade
     # -10 deg in 600 s; the true bias is 0.05). So the accelerometer bias is held while no
-    # fix has aided the filter for gnss_aiding_timeout_s, and every correction of the sum goes
+    # valid fix has come for gnss_aiding_timeout_s, and every correction of the sum goes
     # into the tilt, which the gyro carries between corrections.
     accel_bias_walk_without_gnss: bool = False  # let the accel bias random-walk without GNSS too (paper Q)
-    gnss_aiding_timeout_s: float = 5.0       # [s] no fix applied for this long -> the accel bias is held
+    gnss_aiding_timeout_s: float = 5.0       # [s] no valid fix for this long -> the accel bias is held
     # A bias that no fix has ever observed is only known to its prior; the turn-on bias of a
     # MEMS accelerometer is typically this large. It enters the grade variance, and the
     # published bias covariance, as a 'consider' term: it is not in the filter's P, because a
@@ -328,9 +328,10 @@ class FusionEKF:
 
     @property
     def gnss_aided(self) -> bool:
-        """A fix has updated the navigation state within ``gnss_aiding_timeout_s``."""
-        return (self.status == STATUS_RUNNING and self._t_gnss_applied is not None and self._t is not None
-                and self._t - self._t_gnss_applied <= self.config.gnss_aiding_timeout_s)
+        """A valid fix has arrived within ``gnss_aiding_timeout_s``: the bias walks as in the
+        paper (while the first fixes fix the heading too: they update the state seconds later)."""
+        return (self._t_gnss is not None and self._t is not None
+                and self._t - self._t_gnss <= self.config.gnss_aiding_timeout_s)
 
     @property
     def accel_bias_observed(self) -> bool:
