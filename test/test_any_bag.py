@@ -271,3 +271,24 @@ def test_replay_refuses_a_remap_to_a_topic_outside_the_contract(drive, tmp_path)
     assert proc.returncode == 1
     assert "the bag has no topic imu/raw" in proc.stderr, proc.stderr
     assert topics.IMU in proc.stderr
+
+
+def test_a_second_clock_in_the_domain_stops_the_replay_with_a_clear_message(drive, tmp_path):
+    """Two replays (or a replay beside a simulator) in one ROS domain hear each other's /clock:
+    every node jumps back and resets. The replay refuses to go on and says what to do."""
+    import rclpy
+    from rosgraph_msgs.msg import Clock
+
+    short = rewrite_bag(drive, tmp_path / "short", duration_s=3.0)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("another_clock", context=context)
+    try:
+        node.create_publisher(Clock, "/clock", 10)
+        proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(short), "--record",
+                               str(tmp_path / "out"), "--quiet"], capture_output=True, text=True, timeout=300)
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    assert proc.returncode != 0
+    assert "another node publishes /clock" in proc.stdout + proc.stderr, proc.stdout[-2000:] + proc.stderr[-2000:]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import os
 import shutil
 import sys
 import tempfile
@@ -437,6 +438,7 @@ def _spin_until(driver, executor, group, predicate, resend, timeout: float, what
         executor.spin_once(timeout_sec=0.05)
         now = time.monotonic()
         if now - last_send > RESEND_S:
+            _check_clock_owner(driver)      # a stalled step is where a second clock shows
             dead = group.check()
             if dead:
                 names = ", ".join(f"{n.spec.name} (exit {n.process.returncode})" for n in dead)
@@ -450,6 +452,17 @@ def _spin_until(driver, executor, group, predicate, resend, timeout: float, what
             last_send = now
         if now > deadline:
             raise ReplayError(f"timed out during {what}; acks: {driver.acks}")
+
+
+def _check_clock_owner(driver) -> None:
+    """A replay owns ``/clock`` in its domain: a second publisher (another replay, a simulator,
+    a bag player) makes every node hear two clocks, jump back and reset, and the replay stall."""
+    if driver.count_publishers("/clock") > 1:
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        raise ReplayError(
+            f"another node publishes /clock in ROS_DOMAIN_ID={domain} (another replay, a simulator or "
+            "a bag player?): a replay owns the clock of its domain; run it in a free one, e.g. "
+            "ROS_DOMAIN_ID=42 vehicle-estimation replay ...")
 
 
 def _respawn(driver, executor, group, dead, tick_label: str, timeout: float) -> None:
@@ -509,6 +522,7 @@ def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None
     _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
                 lambda: (driver.clock_pub.publish(_clock(t_ns)), driver.send_sync(label, handshake=True)),
                 timeout, "start-up (waiting for every node and connection)")
+    _check_clock_owner(driver)      # discovery has run by now: a second clock is visible
 
 
 def _tick(driver, executor, group, tick_ns: int, timeout: float) -> None:
