@@ -279,7 +279,8 @@ def test_a_second_clock_in_the_domain_stops_the_replay_with_a_clear_message(driv
     import rclpy
     from rosgraph_msgs.msg import Clock
 
-    short = rewrite_bag(drive, tmp_path / "short", duration_s=3.0)
+    # long enough for the replay's once-a-second look to see the other participant's publisher
+    short = rewrite_bag(drive, tmp_path / "short", duration_s=12.0)
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node("another_clock", context=context)

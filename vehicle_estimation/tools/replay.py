@@ -155,6 +155,7 @@ class ReplayDriver(Node):
         self.recorded: Counter[str] = Counter()
         self._rec_connections: dict[str, Any] = {}
         self.now_ns = 0
+        self.clock_checked = 0.0       # wall time of the last look for a second /clock
         self.dirty = False
         # Count bookkeeping across a node respawn (see respawn_baseline): what each process
         # will never see, and what dead processes had published.
@@ -398,6 +399,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                 _tick(driver, executor, group, next_tick, stall_timeout)
                 stats.ticks += 1
                 next_tick += tick_ns
+            _check_clock_owner(driver)      # a replay shorter than discovery: one last look
             if progress:
                 _progress(t_end - t_start, t_end - t_start, wall0)
                 print(file=sys.stderr)
@@ -522,10 +524,19 @@ def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None
     _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
                 lambda: (driver.clock_pub.publish(_clock(t_ns)), driver.send_sync(label, handshake=True)),
                 timeout, "start-up (waiting for every node and connection)")
-    _check_clock_owner(driver)      # discovery has run by now: a second clock is visible
+    _check_clock_owner(driver)
+
+
+#: Wall time between two looks for a second /clock while the replay runs [s]: discovery of a
+#: participant that starts later takes up to a few seconds, and a look costs a graph query.
+CLOCK_CHECK_PERIOD_S = 1.0
 
 
 def _tick(driver, executor, group, tick_ns: int, timeout: float) -> None:
+    now = time.monotonic()
+    if now - driver.clock_checked > CLOCK_CHECK_PERIOD_S:
+        driver.clock_checked = now
+        _check_clock_owner(driver)
     driver.now_ns = tick_ns
     driver.clock_pub.publish(_clock(tick_ns))
     label = str(tick_ns)
