@@ -139,7 +139,7 @@ def test_imu_bias_message_carries_the_mounting():
     f_raw = C.T @ f_base + np.array([0.1, -0.05, 0.02])
     f, w = bias.correct(T0, f_raw, C.T @ np.array([0.0, 0.0, 0.2]) + np.array([0.0, 0.0, 0.003]))
     assert bias.valid
-    assert bias.accel_x_variance == pytest.approx(0.05 ** 2)   # the slope observer's bias variance
+    assert bias.accel_x_variance_at(T0) == pytest.approx(0.05 ** 2)   # the slope observer's bias variance
     np.testing.assert_allclose(f, f_base, atol=1e-12)
     np.testing.assert_allclose(w, [0.0, 0.0, 0.2], atol=1e-12)
     # a publisher that leaves the orientation at zero means "no mounting": identity

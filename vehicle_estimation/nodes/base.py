@@ -798,8 +798,6 @@ class FusionImuBias:
     def __init__(self) -> None:
         self.history = UpstreamHistory(horizon_s=5.0)
         self.valid = False
-        #: Variance of the along-track bias estimate [m^2/s^4] (published by the fusion).
-        self.accel_x_variance = 0.0
 
     @staticmethod
     def convert(msg: Any) -> tuple[float, Any] | None:
@@ -821,15 +819,15 @@ class FusionImuBias:
         self.valid = entry is not None
         if entry is None:
             return f, w
-        ba, bg, mount, self.accel_x_variance = entry
+        ba, bg, mount, _ = entry
         return mount @ (f - ba), mount @ (w - bg)
 
     def accel_x_variance_at(self, t: float) -> float | None:
-        """The along-track bias variance published for stamp ``t``, None without the fusion."""
+        """The along-track bias variance [m^2/s^4] published for stamp ``t``, None without the
+        fusion."""
         entry = self.history.at(t)
         return None if entry is None else entry[3]
 
     def clear(self) -> None:
         self.history.clear()
         self.valid = False
-        self.accel_x_variance = 0.0

@@ -197,8 +197,9 @@ class SlopeNode(EstimatorNode):
         if isinstance(self.core, AutoSlope):
             # The accelerometer bias left in the observer's input goes into its slope one to one:
             # the fusion's bias uncertainty, or without the fusion the sensor's turn-on bias.
-            bias_variance = (self.bias.accel_x_variance if self.bias.valid
-                             else self.auto_config.uncompensated_accel_bias_std ** 2)
+            bias_variance = self.bias.accel_x_variance_at(t)
+            if bias_variance is None:
+                bias_variance = self.auto_config.uncompensated_accel_bias_std ** 2
             self.core.update(t, grade_usable, bias_variance / self.vehicle.gravity ** 2)
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t

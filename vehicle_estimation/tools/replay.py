@@ -155,7 +155,7 @@ class ReplayDriver(Node):
         self.recorded: Counter[str] = Counter()
         self._rec_connections: dict[str, Any] = {}
         self.now_ns = 0
-        self.clock_checked = 0.0       # wall time of the last look for a second /clock
+        self.clock_checked = 0.0       # wall time of the last look for a second /clock (0: the first tick looks)
         self.dirty = False
         # Count bookkeeping across a node respawn (see respawn_baseline): what each process
         # will never see, and what dead processes had published.
@@ -524,7 +524,6 @@ def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None
     _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
                 lambda: (driver.clock_pub.publish(_clock(t_ns)), driver.send_sync(label, handshake=True)),
                 timeout, "start-up (waiting for every node and connection)")
-    _check_clock_owner(driver)
 
 
 #: Wall time between two looks for a second /clock while the replay runs [s]: discovery of a

@@ -400,10 +400,10 @@ def consistency_series(data: dict[str, Series], warmup_s: float) -> dict[str, di
     return out
 
 
-def _consistency_group(data, warmup_s):
+def consistency_group(data, warmup_s):
+    """metrics.consistency of each checked estimate (``{name: metrics}`` or None) and the series."""
     series = consistency_series(data, warmup_s)
-    res = {name: {"unit": "-", **metrics.consistency(s["error"], s["variance"], s["converged"])}
-           for name, s in series.items()}
+    res = {name: metrics.consistency(s["error"], s["variance"], s["converged"]) for name, s in series.items()}
     return (res or None), (series or None)
 
 
@@ -435,7 +435,7 @@ WANTED = ("estimation/mass", topics.GT_MASS, "estimation/road_slope", topics.GT_
 
 GROUP_BUILDERS: dict[str, Callable] = {
     "mass": _mass_group, "slope": _slope_group, "vehicle_state": _state_group, "fusion": _fusion_group,
-    "consistency": _consistency_group}
+    "consistency": consistency_group}
 PLOTTERS: dict[str, Callable] = {
     "mass": _plot_mass, "slope": _plot_slope, "vehicle_state": _plot_state, "fusion": _plot_fusion,
     "consistency": _plot_consistency}
@@ -521,7 +521,8 @@ def format_table(report: dict) -> str:
     return "\n".join(lines)
 
 
-def _pct(x: Any) -> str:
+def format_share(x: Any) -> str:
+    """A share 0-1 as a whole percentage; n/a for None or NaN."""
     return "n/a" if x is None or not math.isfinite(x) else f"{100.0 * x:.0f} %"
 
 
@@ -535,9 +536,12 @@ def format_consistency(rows: dict[str, dict]) -> list[str]:
         def num(key, spec=".3g"):
             v = c.get(key)
             return "n/a" if v is None or not math.isfinite(v) else format(v, spec)
-        lines.append(f"{name:<12}{c.get('n', 0):>7}{_pct(c.get('within_1sigma')):>7}{_pct(c.get('within_2sigma')):>7}"
-                     f"{_pct(c.get('within_3sigma')):>7}{num('nees'):>9}{_pct(c.get('converged_share')):>8}"
-                     f"{_pct(c.get('converged_within_2sigma')):>10}{_pct(c.get('converged_beyond_3sigma')):>11}"
+        share = {key: format_share(c.get(key)) for key in (
+            "within_1sigma", "within_2sigma", "within_3sigma", "converged_share", "converged_within_2sigma",
+            "converged_beyond_3sigma")}
+        lines.append(f"{name:<12}{c.get('n', 0):>7}{share['within_1sigma']:>7}{share['within_2sigma']:>7}"
+                     f"{share['within_3sigma']:>7}{num('nees'):>9}{share['converged_share']:>8}"
+                     f"{share['converged_within_2sigma']:>10}{share['converged_beyond_3sigma']:>11}"
                      f"{num('converged_nees'):>12}")
     lines.append("honest: 68 / 95 / 99.7 % within 1/2/3σ, NEES 1; NEES above 1: the variance is too small")
     return lines

@@ -155,13 +155,11 @@ def _read_estimates(bag: Path) -> dict:
 
 def consistency_rows(case: Case, est: dict) -> list[dict]:
     """Per estimate with a variance: its errors against its own sigma (tools.metrics.consistency)."""
-    from ..tools.report import consistency_series
+    from ..tools.report import consistency_group
 
-    rows = []
-    for quantity, s in consistency_series(est, WARMUP_S).items():
-        rows.append({"case": case.name, "independent": case.independent, "quantity": quantity,
-                     **metrics.consistency(s["error"], s["variance"], s["converged"])})
-    return rows
+    checked, _ = consistency_group(est, WARMUP_S)
+    return [{"case": case.name, "independent": case.independent, "quantity": quantity, **values}
+            for quantity, values in (checked or {}).items()]
 
 
 def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str) -> tuple[list, dict]:
@@ -366,8 +364,7 @@ def format_table(result: dict) -> str:
 def format_consistency(rows: list[dict]) -> str:
     """Honesty of the published variances: errors within 1/2/3 sigma, NEES, and the same over
     the samples flagged converged."""
-    def pct(x):
-        return "n/a" if x is None or not math.isfinite(x) else f"{100.0 * x:.0f} %"
+    from ..tools.report import format_share as pct
 
     def num(x):
         return "n/a" if x is None or not math.isfinite(x) else f"{x:.2f}"
