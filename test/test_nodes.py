@@ -20,6 +20,7 @@ from rosharness import Harness, init_rclpy, sec_to_time, vehicle_overrides
 from vehicle_estimation import topics
 from vehicle_estimation.core.geodesy import LocalTangentPlane
 from vehicle_estimation.nodes.fusion_node import FusionNode
+from vehicle_estimation.nodes import conversions
 from vehicle_estimation.nodes.base import companion
 from vehicle_estimation.nodes.mass_node import MassNode
 from vehicle_estimation.nodes.slope_node import SlopeNode
@@ -283,9 +284,16 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
             assert vx == pytest.approx(20.0, abs=0.3)
             assert node.core.speed_updates > 500
             assert all(converged), (node._missing, node.vx_source)
+            assert math.sqrt(state[-1].twist.covariance[0]) < conversions.MAX_MEASURED_SPEED_STD
         else:
             assert vx > 22.0        # the drift the fallback removes
             assert not any(converged)
+            # The published variance covers the drift (within 2 sigma), and says "not measured",
+            # so no slope observer or mass filter takes this vx for a speed.
+            std = math.sqrt(state[-1].twist.covariance[0])
+            assert abs(vx - 20.0) < 2.0 * std and std > conversions.MAX_MEASURED_SPEED_STD
+            assert conversions.forward_speed_entry(state[-1]) is None
+            assert conversions.planar_velocity_entry(state[-1]) is None
     finally:
         h.close()
 

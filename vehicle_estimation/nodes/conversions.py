@@ -121,15 +121,29 @@ def imu_plausible(f: np.ndarray, w: np.ndarray) -> bool:
     return bool(np.max(np.abs(f)) <= MAX_SPECIFIC_FORCE and np.max(np.abs(w)) <= MAX_ANGULAR_RATE)
 
 
+#: Largest published vx standard deviation [m/s] of a speed that an observer may take as a
+#: measurement. A wheel- or CAN-aided vx has a few cm/s; a vx the state node dead-reckons from
+#: the accelerometer has its growing uncertainty (and carries the very grade and bias an observer
+#: would estimate from it: a closed loop that runs away).
+MAX_MEASURED_SPEED_STD = 0.5
+
+
+def _measured(msg: Any) -> bool:
+    """Whether the twist's vx variance says measured (NaN or <= 0: unknown, taken as measured)."""
+    var = msg.twist.covariance[0]
+    return not (math.isfinite(var) and var > MAX_MEASURED_SPEED_STD ** 2)
+
+
 def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
     """``(stamp, (stamp, vx))`` of an Odometry or TwistWithCovarianceStamped, for a history.
 
-    Both carry the body-frame forward speed in ``twist.twist.linear.x``.
+    Both carry the body-frame forward speed in ``twist.twist.linear.x``. A vx whose variance
+    exceeds :data:`MAX_MEASURED_SPEED_STD` squared (dead reckoning) is no entry.
     """
     stamp = msg.header.stamp
     t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
     v = msg.twist.twist.linear.x
-    return (t, (t, v)) if math.isfinite(v) else None
+    return (t, (t, v)) if math.isfinite(v) and _measured(msg) else None
 
 
 def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
@@ -166,8 +180,8 @@ def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
 
 def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
     """``(stamp, (stamp, vx, vy))`` of a TwistWithCovarianceStamped (the vehicle-state
-    node's output), for a history."""
+    node's output), for a history; none for a dead-reckoned vx (as :func:`forward_speed_entry`)."""
     stamp = msg.header.stamp
     t = (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9  # as nodes.base.stamp_to_sec
     vx, vy = msg.twist.twist.linear.x, msg.twist.twist.linear.y
-    return (t, (t, vx, vy)) if math.isfinite(vx) and math.isfinite(vy) else None
+    return (t, (t, vx, vy)) if math.isfinite(vx) and math.isfinite(vy) and _measured(msg) else None

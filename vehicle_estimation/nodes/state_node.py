@@ -162,6 +162,14 @@ class StateNode(EstimatorNode):
         # error on vx: its white-noise equivalent density 2 sigma^2 tau [(m/s^2)^2 s].
         self.missing_slope_noise_density = (
             2.0 * (self.vehicle.gravity * math.sin(missing_slope_std)) ** 2 * GRADE_CORRELATION_S)
+        dead_reckoning_std = self.declare_float(
+            "dead_reckoning_accel_std", 0.35,
+            "While no wheel speed or vehicle/speed measures vx, the filter integrates the "
+            "accelerometer, whose bias and grade error no measurement checks: this acceleration "
+            "error std goes into the vx process noise [m/s^2]", 0.0, 5.0)
+        # Same white-noise equivalent: the published vx variance then grows as the drift does,
+        # and the slope and mass nodes stop taking that vx as a speed (MAX_MEASURED_SPEED_STD).
+        self.dead_reckoning_noise_density = 2.0 * dead_reckoning_std ** 2 * GRADE_CORRELATION_S
         self.min_dynamic_speed = self.declare_float(
             "sideslip_min_speed", 3.0,
             "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
@@ -292,7 +300,9 @@ class StateNode(EstimatorNode):
         slope = self._upstream(self.slope, t, math.nan, "road slope")
         # Without the slope the filter assumes a level road and adds the grade's acceleration
         # error as process noise, so the variance says the estimate knows less.
-        self.core.extra_vx_noise_density = self.missing_slope_noise_density if math.isnan(slope) else 0.0
+        self.core.extra_vx_noise_density = (
+            (self.missing_slope_noise_density if math.isnan(slope) else 0.0)
+            + (0.0 if self._vx_measured or not self.core.initialised else self.dead_reckoning_noise_density))
         inputs = VehicleInputs(
             steer_angle=steer,
             wheel_speeds=wheels,
