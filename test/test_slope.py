@@ -283,15 +283,19 @@ def test_cubic_prediction_tracks_ramp_with_less_lag_than_classical():
 
 
 def test_cubic_prediction_variance_is_consistent():
-    """Noise as the config assumes (sigma_a = 0.2, sigma_v = 0.05): the propagated std of the
-    fixed-gain observer matches the actual scatter within a factor 1.5, and converges."""
-    obs = CubicPredictionSlopeObserver()
-    t, est, truth = _run(obs, lambda _t: 0.03, 40.0, seed=3)
-    actual = np.std(est[t > 15.0] - truth[t > 15.0])
-    reported = math.sqrt(obs.variance)
-    assert actual / 1.5 < reported < actual * 1.5
-    assert obs.converged
-    assert abs(np.mean(est[t > 15.0]) - 0.03) < 0.002
+    """Noise as the config assumes (sigma_a = 0.2, sigma_v = 0.05): over eight drives the
+    propagated variance of the fixed-gain observer is the mean squared error within -20/+50 %
+    (measured: +18 %), so a variance half as large or twice as large fails; it converges."""
+    published, squared = [], []
+    for seed in range(8):
+        obs = CubicPredictionSlopeObserver()
+        t, est, truth = _run(obs, lambda _t: 0.03, 40.0, seed=seed)
+        published.append(obs.variance)
+        squared.append(np.mean((est[t > 15.0] - truth[t > 15.0]) ** 2))
+        assert obs.converged
+        assert abs(np.mean(est[t > 15.0]) - 0.03) < 0.002
+    ratio = np.mean(published) / np.mean(squared)
+    assert 0.8 < ratio < 1.5
 
 
 def test_cubic_prediction_nan_inputs_and_rejections():

@@ -184,6 +184,13 @@ class FusionConfig:
     # published bias covariance, as a 'consider' term: it is not in the filter's P, because a
     # large P there would move corrections of the sum into the bias (the drift above).
     unaided_accel_bias_sigma: float = 0.05   # [m/s^2] accel bias prior in the grade variance until GNSS observes it
+    # Without GNSS nothing observes the heading, so nothing observes the z gyro bias either
+    # (the alignment's standstill mean set it), yet the non-holonomic constraint couples it to
+    # the lateral accelerometer bias (v_y' = a_y - r v_x: a yaw-rate error looks like b_y / v_x)
+    # and the filter trades one for the other (on FASTSim's drive the z bias went from -2 to
+    # +2 mrad/s). Held: a 'consider' state while no fix aids (a Schmidt update: its gain is
+    # zero, its covariance and cross-covariances are kept, Joseph form), corrected by GNSS.
+    hold_yaw_rate_bias_without_gnss: bool = True
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""
@@ -237,7 +244,8 @@ class FusionConfig:
         if self.heading_max_fixes < 2:
             raise ValueError("FusionConfig.heading_max_fixes must be >= 2")
         for name in ("stationary_update_longitudinal", "speed_unsigned", "full_velocity_jacobian",
-                     "estimate_mounting", "in_motion_alignment", "accel_bias_walk_without_gnss"):
+                     "estimate_mounting", "in_motion_alignment", "accel_bias_walk_without_gnss",
+                     "hold_yaw_rate_bias_without_gnss"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"FusionConfig.{name} must be a bool")
 
@@ -641,6 +649,8 @@ class FusionEKF:
             if not d2 <= gate:
                 return 0
         K = PHt @ S_inv                                   # Eq. (37)
+        if self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided:
+            K[IBG + 2, :] = 0.0                           # Schmidt: a consider state keeps its value
         dz = K @ y                                        # Eq. (40), with the previous error reset to 0
         if not math.isfinite(float(dz.sum())):
             self.rejected["update_numerical"] += 1

@@ -204,11 +204,12 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
              engine_torque: float = math.nan, engine_speed: float = math.nan,
              engine_load: float = math.nan, gear: float = math.nan,
              brake_torque: float = 0.0, heading: float = math.nan,
-             regressor_bias_variance: float = 0.0) -> bool:
+             regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf) -> bool:
         """Process one sample; return True when it updated the estimate (Eq. 30).
 
         ``regressor_bias_variance`` [m^2/s^4]: the variance of a lasting error in Omega_m (the
-        accelerometer bias), see :class:`~vehicle_estimation.core.mass_rls.ForgettingMassEstimator`.
+        accelerometer bias), ``regressor_bias_correlation_s`` [s] how long it lasts, see
+        :class:`~vehicle_estimation.core.mass_rls.ForgettingMassEstimator`.
 
         ``t`` [s], ``vx`` longitudinal speed [m/s], ``ax`` the longitudinal acceleration
         dv_x/dt [m/s^2] (not the IMU specific force, which contains g sin(theta)), ``slope``
@@ -286,4 +287,5 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
             # Overflow on absurd but finite inputs: keep the last estimate, as Eq. (31) does.
             self.rls.theta, self.rls.p, self.rls.last_residual = theta_before, p_before, residual_before
             return self._reject("nan")
-        return self._accepted(omega, y, residual * residual, regressor_bias_variance)
+        return self._accepted(t, omega, y, residual * residual, regressor_bias_variance,
+                              regressor_bias_correlation_s)

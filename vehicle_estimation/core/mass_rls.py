@@ -321,10 +321,14 @@ class ForgettingMassEstimator:
     that no GNSS has observed is in the fusion's grade, in the observer's slope and in the
     IMU acceleration alike, and biases the regressor phi by d_b on every sample. The estimate
     is then off by d_m = -m p sum(lambda^k phi_k d_b,k). With the bias variance the caller
-    gives (``regressor_bias_variance``: the fusion's bias variance) and the errors taken as
-    fully correlated, that is a 'consider' term (m p S)^2 with
-    S = sum(lambda^k |phi_k| sigma_b,k) (|phi_k|: conservative where phi changes sign). On
-    FASTSim's hills without GNSS the mass was 3 % off while p·sigma^2 said 0.2 %.
+    gives (``regressor_bias_variance``: the fusion's bias variance) and the bias error taken
+    as a first-order Gauss-Markov process of correlation time tau
+    (``regressor_bias_correlation_s``: infinite while no GNSS aids the fusion, which then holds
+    its bias; seconds while GNSS keeps correcting it), that is a 'consider' term
+    (m p)^2 V with V = sum_j sum_k w_j w_k rho^|t_j - t_k|, w_k = lambda^(n-k) |phi_k| sigma_b,k,
+    computed recursively (|phi_k|: conservative where phi changes sign). Fully correlated
+    (tau infinite) V = S^2 with S = sum w_k. On FASTSim's hills without GNSS the mass was 3 %
+    off while p·sigma^2 said 0.2 %; with GNSS the fully correlated term said 6x the error.
     """
 
     REJECT_REASONS: tuple[str, ...] = ()
@@ -348,7 +352,9 @@ class ForgettingMassEstimator:
         self.rls = RecursiveLeastSquares(cfg.forgetting_factor, m0, p0)
         self._res_weight = 1.0
         self._res_sq = cfg.initial_residual_std ** 2
-        self._bias_lever = 0.0       # S of the class docstring [m^2/s^4]
+        self._bias_lever = 0.0       # sum_k w_k rho^(t_n - t_k) (S when fully correlated) [m/s^2]
+        self._bias_spread = 0.0      # V of the class docstring [m^2/s^4]
+        self._bias_t = math.nan      # stamp of the last accepted sample [s]
         self._window: collections.deque[float] = collections.deque(maxlen=int(cfg.convergence_window))
         self.samples_used = 0
         self.rejected: dict[str, int] = {reason: 0 for reason in self.REJECT_REASONS}
@@ -368,6 +374,7 @@ class ForgettingMassEstimator:
             "residual_weight": float(self._res_weight),
             "residual_sq": float(self._res_sq),
             "bias_lever": float(self._bias_lever),
+            "bias_spread": float(self._bias_spread),
             "samples_used": float(self.samples_used),
         }
 
@@ -385,6 +392,8 @@ class ForgettingMassEstimator:
             self._res_weight, self._res_sq = weight, sq
         lever = float(state.get("bias_lever", 0.0))
         self._bias_lever = lever if math.isfinite(lever) and lever >= 0.0 else 0.0
+        spread = float(state.get("bias_spread", self._bias_lever ** 2))   # older files: fully correlated
+        self._bias_spread = spread if math.isfinite(spread) and spread >= 0.0 else self._bias_lever ** 2
         used = float(state.get("samples_used", 0.0))
         self.samples_used = int(used) if math.isfinite(used) and used >= 0 else 0
 
@@ -410,7 +419,7 @@ class ForgettingMassEstimator:
     @property
     def bias_variance(self) -> float:
         """The share of :attr:`variance` that a lasting regressor error leaves [kg^2]."""
-        return (self.mass * self.rls.p * self._bias_lever) ** 2
+        return (self.mass * self.rls.p) ** 2 * self._bias_spread
 
     @property
     def variance(self) -> float:
@@ -438,15 +447,23 @@ class ForgettingMassEstimator:
         self.rejected[reason] += 1
         return False
 
-    def _accepted(self, phi: float, y: float, residual_sq: float, regressor_bias_variance: float = 0.0) -> bool:
-        """Book-keeping after an RLS update with a-priori squared residual ``residual_sq``;
-        ``regressor_bias_variance`` [m^2/s^4] feeds the lasting error's share of the variance."""
+    def _accepted(self, t: float, phi: float, y: float, residual_sq: float,
+                  regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf) -> bool:
+        """Book-keeping after an RLS update at ``t`` with a-priori squared residual
+        ``residual_sq``; ``regressor_bias_variance`` [m^2/s^4] and its correlation time
+        ``regressor_bias_correlation_s`` [s] feed the lasting error's share of the variance."""
         lam = self.config.forgetting_factor
         self._res_weight = lam * self._res_weight + 1.0
         self._res_sq = lam * self._res_sq + residual_sq
         var = regressor_bias_variance
-        sigma = math.sqrt(var) if _finite(var) and var > 0.0 else 0.0
-        self._bias_lever = self.rls.forgetting_factor * self._bias_lever + abs(phi) * sigma
+        u = abs(phi) * (math.sqrt(var) if _finite(var) and var > 0.0 else 0.0)
+        tau, dt = regressor_bias_correlation_s, t - self._bias_t
+        # rho = exp(-dt / tau): 1 for a bias that lasts (tau infinite, or the first sample)
+        rho = math.exp(-dt / tau) if math.isfinite(dt) and dt > 0.0 and tau < math.inf else 1.0
+        carried = lam * rho * self._bias_lever
+        self._bias_spread = lam * lam * self._bias_spread + u * u + 2.0 * u * carried
+        self._bias_lever = carried + u
+        self._bias_t = t
         self._window.append(self.rls.theta)
         self.samples_used += 1
         self.last_phi, self.last_y = phi, y
@@ -493,13 +510,14 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
              drive_force: float = math.nan, engine_torque: float = math.nan,
              engine_speed: float = math.nan, engine_load: float = math.nan,
              gear: float = math.nan, brake_torque: float = 0.0, heading: float = math.nan,
-             regressor_bias_variance: float = 0.0) -> bool:
+             regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf) -> bool:
         """Process one sample; return True when it updated the RLS.
 
         ``t`` [s], ``vx`` longitudinal speed [m/s], ``ax`` longitudinal acceleration dv/dt
         [m/s^2] (not the IMU specific force), ``slope`` road grade alpha [rad, + uphill];
         ``regressor_bias_variance`` [m^2/s^4] the variance of a lasting error in
-        ax + g sin(slope), i.e. of the accelerometer bias (class docstring).
+        ax + g sin(slope), i.e. of the accelerometer bias, ``regressor_bias_correlation_s``
+        [s] how long that error lasts (class docstring).
 
         Propulsion force F_p, first available of:
 
@@ -596,4 +614,5 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         y = force - drag - inertia * ax                                          # Eq. (6)
 
         self.rls.update(phi, y)                                                   # Eqs. (7)-(9)
-        return self._accepted(phi, y, self.rls.last_residual ** 2, regressor_bias_variance)
+        return self._accepted(t, phi, y, self.rls.last_residual ** 2, regressor_bias_variance,
+                              regressor_bias_correlation_s)

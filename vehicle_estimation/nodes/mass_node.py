@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import Imu, JointState
+from sensor_msgs.msg import Imu, JointState, NavSatFix, NavSatStatus
 from std_msgs.msg import Float64
 
 from vehicle_estimation import topics
@@ -224,6 +224,18 @@ class MassNode(EstimatorNode):
         self.max_slope_var = math.radians(self.declare_float(
             "max_slope_std_deg", 0.5,
             "Update only while the slope estimate is converged with at most this std [deg]", 0.01, 90.0)) ** 2
+        # How long the fusion's accelerometer-bias error lasts decides how much of it the
+        # forgetting RLS averages out: while GNSS aids the fusion it corrects the bias within
+        # seconds; without GNSS the fusion holds its bias and the error stays for the drive.
+        self.gnss_aiding_timeout = self.declare_float(
+            "gnss_aiding_timeout_s", 5.0,
+            "A GNSS fix within this time means the fusion's bias is being corrected (as the "
+            "fusion's own gnss_aiding_timeout_s) [s]", 0.1, 3600.0)
+        self.aided_bias_correlation = self.declare_float(
+            "gnss_aided_bias_correlation_s", 4.0,
+            "Correlation time of the fusion's accelerometer-bias error while GNSS aids it, for "
+            "the mass variance [s]; without GNSS the error is taken to last", 0.0, 1.0e6)
+        self._gnss_t = -math.inf
         p = self.vehicle
         self.max_engine_torque = POWERTRAIN_MARGIN * p.engine_max_torque
         self.max_drive_force = (POWERTRAIN_MARGIN * p.engine_max_torque * max(p.gear_ratios, default=1.0)
@@ -243,6 +255,8 @@ class MassNode(EstimatorNode):
         self.pub_stamped = self.publisher(Vector3Stamped, topics.MASS_STAMPED)
         self.subscribe_primary(JointState, topics.POWERTRAIN, self.on_powertrain)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
+        if self.method != "ta_aekf":
+            self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
         # The IMU (200 Hz or more) only feeds the acceleration for "imu", and "auto" without
         # wheel speeds: a node that never reads it does not pay for receiving it.
         uses_imu = self.accel_source in ("imu", "auto")
@@ -290,6 +304,15 @@ class MassNode(EstimatorNode):
             v = float(np.mean(undriven)) * self.vehicle.wheel_radius
             self.window.add_wheel_speed(t, v)
             self.wheel_speed = (t, v)
+
+    def on_gnss(self, t: float, msg: NavSatFix) -> None:
+        if msg.status.status >= NavSatStatus.STATUS_FIX and math.isfinite(msg.latitude) \
+                and math.isfinite(msg.longitude):
+            self._gnss_t = t
+
+    def regressor_bias_correlation(self, t: float) -> float:
+        """Correlation time [s] of the regressor's bias error at ``t`` (infinite: it lasts)."""
+        return self.aided_bias_correlation if t - self._gnss_t <= self.gnss_aiding_timeout else math.inf
 
     def on_powertrain(self, t: float, msg: JointState) -> None:
         try:
@@ -347,7 +370,8 @@ class MassNode(EstimatorNode):
                                engine_speed=window.mean("engine_speed"),
                                engine_load=window.mean("engine_load"), gear=window.gear,
                                brake_torque=window.brake if self.method == "rls" else window.brake_mean,
-                               regressor_bias_variance=window.mean("bias_variance"), **extra)
+                               regressor_bias_variance=window.mean("bias_variance"),
+                               regressor_bias_correlation_s=self.regressor_bias_correlation(t), **extra)
             window.clear()
         self._publish_and_persist(t)
 
@@ -462,6 +486,7 @@ class MassNode(EstimatorNode):
         self.state_speed.clear()
         self.can_speed = None
         self.wheel_speed = None
+        self._gnss_t = -math.inf
         self._last_pub = -math.inf
 
     def status_values(self) -> dict[str, str]:

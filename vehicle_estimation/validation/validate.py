@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -393,8 +394,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace, node_group) -> int:
-    result = run(args.out, node_group, cases=[c for c in args.cases.split(",") if c], quick=args.quick,
-                 progress=not args.quiet)
+    try:
+        result = run(args.out, node_group, cases=[c for c in args.cases.split(",") if c], quick=args.quick,
+                     progress=not args.quiet)
+    except FileExistsError as exc:
+        # The drives are generated afresh (a new library version may change them): never mixed
+        # with the bags of an earlier run.
+        print(f"validate: {exc} (from an earlier run): remove {args.out} or choose another --out",
+              file=sys.stderr)
+        return 2
     print(format_table(result))
     print(f"wrote {args.out / 'validation.json'}, {args.out / 'validation.md'} and one plot per case")
     return 0
