@@ -7,10 +7,10 @@ from setuptools import find_packages, setup
 PACKAGE = "vehicle_estimation"
 
 NODES = {
-    "fusion_node": "vehicle_estimation.nodes.fusion_node:main",
-    "slope_node": "vehicle_estimation.nodes.slope_node:main",
-    "state_node": "vehicle_estimation.nodes.state_node:main",
-    "mass_node": "vehicle_estimation.nodes.mass_node:main",
+    "fusion_node": "vehicle_estimation.ros.fusion_node:main",
+    "slope_node": "vehicle_estimation.ros.slope_node:main",
+    "state_node": "vehicle_estimation.ros.state_node:main",
+    "mass_node": "vehicle_estimation.ros.mass_node:main",
 }
 
 setup(

@@ -1,6 +1,6 @@
 """The bag a user brings: stamps from 0 s, ROS 1 bags, other topic names, other rates, extra topics.
 
-Every variant is made from one short simulated drive with ``tools.bagtools.rewrite_bag`` and
+Every variant is made from one short simulated drive with ``io.bagtools.rewrite_bag`` and
 replayed through the real launcher. Cases are combined where that keeps the intent clear (each
 replay costs ~10 s): ROS 1 + start at 0 s; remapped names + unrelated extra topics; 100 Hz
 IMU + 1 Hz GNSS (written as sqlite3).
@@ -19,11 +19,11 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from vehicle_estimation import topics
+from vehicle_estimation.contract import topics
 from vehicle_estimation.cli import build_parser
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
-from vehicle_estimation.tools.bagtools import rewrite_bag
-from vehicle_estimation.tools.processes import NodeGroup
+from vehicle_estimation.io.bagtools import rewrite_bag
+from vehicle_estimation.launcher.processes import NodeGroup
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 ESTIMATES = ("/estimation/odometry", "/estimation/vehicle_state", "/estimation/mass")
@@ -195,7 +195,7 @@ def test_remap_option_and_node_argv():
 
 
 def test_handshake_clock_is_never_negative():
-    from vehicle_estimation.tools.replay import handshake_ns
+    from vehicle_estimation.launcher.replay import handshake_ns
     assert handshake_ns(0) == 0
     assert handshake_ns(400_000_000) == 0
     assert handshake_ns(1_700_000_000 * 10**9) == 1_699_999_999 * 10**9

@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.aoukf import (AOUKFConfig, AntiOutlierUKF, ExtendedKalmanFilter, ThreeDofModel,
+from vehicle_estimation.estimators.state.aoukf import (AOUKFConfig, AntiOutlierUKF, ExtendedKalmanFilter, ThreeDofModel,
                                            UnscentedKalmanFilter, VehicleStateAOUKF, sqrt_psd)
-from vehicle_estimation.core.vehicle_model import VehicleInputs
+from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.sim.scenario import load_vehicle
 
 SEDAN = load_vehicle("sedan_d_class")
@@ -175,14 +175,14 @@ def test_gap_reinitialises_from_the_wheels():
 def dlc_drive():
     from vehicle_estimation.sim import simulate
     from vehicle_estimation.sim.scenario import scenario_by_name
-    from vehicle_estimation.tools.paper002 import drive_from_sim
+    from vehicle_estimation.experiments.paper002_aoukf_gabpnn import drive_from_sim
 
     scn = dataclasses.replace(scenario_by_name("paper002_dlc"), duration_s=12.0, seed=41)
     return drive_from_sim(simulate(scn))
 
 
 def test_anti_outlier_ukf_beats_the_plain_ukf_and_ekf_on_outliers(dlc_drive):
-    from vehicle_estimation.tools.paper002 import run_estimator, score
+    from vehicle_estimation.experiments.paper002_aoukf_gabpnn import run_estimator, score
 
     assert np.count_nonzero(dlc_drive.outlier_mask) > 10
     res = {}

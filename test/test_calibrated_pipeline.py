@@ -18,17 +18,17 @@ import numpy as np
 import pytest
 import rclpy
 
-from vehicle_estimation.nodes.base import ParameterError
-from vehicle_estimation.nodes.fusion_node import FusionNode
-from vehicle_estimation.nodes.mass_node import MassNode
-from vehicle_estimation.nodes.slope_node import SlopeNode
-from vehicle_estimation.nodes.state_node import StateNode
+from vehicle_estimation.contract.vehicle import load_vehicle_params
+from vehicle_estimation.ros.fusion_node import FusionNode
+from vehicle_estimation.ros.mass_node import MassNode
+from vehicle_estimation.ros.runtime.parameters import ParameterError
+from vehicle_estimation.ros.slope_node import SlopeNode
+from vehicle_estimation.ros.state_node import StateNode
 from vehicle_estimation.sim.bag import write_bag
 from vehicle_estimation.sim.profiles import SpeedProfile
 from vehicle_estimation.sim.road import RoadSpec
 from vehicle_estimation.sim.scenario import Scenario, SensorConfig
 from vehicle_estimation.sim.simulate import simulate
-from vehicle_estimation.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 SHIPPED = sorted(PARAMS_DIR.glob("*.yaml"))
@@ -47,7 +47,7 @@ def _obd_only_drive(seed: int, duration: float = 150.0) -> Scenario:
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory) -> tuple[Path, int]:
-    from vehicle_estimation.tools import calibrate
+    from vehicle_estimation.training import calibrate
 
     tmp = tmp_path_factory.mktemp("calibrated")
     result = simulate(_obd_only_drive(seed=9))

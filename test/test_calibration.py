@@ -1,4 +1,4 @@
-"""Tests of the paper-003 training phase: vehicle_estimation.core.calibration and tools/calibrate."""
+"""Tests of the paper-003 training phase: vehicle_estimation.estimators.mass.calibration and training/calibrate."""
 
 import argparse
 import dataclasses
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core import calibration as cal
-from vehicle_estimation.core.mass_rls import EngineTorqueRegression, MassRLSConfig
-from vehicle_estimation.vehicle import load_vehicle_params, read_ros_params_file
+from vehicle_estimation.estimators.mass import calibration as cal
+from vehicle_estimation.estimators.mass.mass_rls import EngineTorqueRegression, MassRLSConfig
+from vehicle_estimation.contract.vehicle import load_vehicle_params, read_ros_params_file
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 AUDI = load_vehicle_params(PARAMS_DIR / "audi_a4.yaml")
@@ -157,7 +157,7 @@ def test_calibrate_cli_on_a_simulated_bag(tmp_path):
     from vehicle_estimation.sim.road import RoadSpec
     from vehicle_estimation.sim.scenario import Scenario, SensorConfig
     from vehicle_estimation.sim.simulate import simulate
-    from vehicle_estimation.tools import calibrate
+    from vehicle_estimation.training import calibrate
 
     pts = ((0, 0), (14, 30), (20, 30), (30, 12), (42, 38), (70, 38), (80, 25), (95, 25), (102, 8),
            (110, 8), (118, 20), (130, 14), (140, 0), (144, 0))
@@ -187,7 +187,7 @@ def test_calibrate_cli_on_a_simulated_bag(tmp_path):
 
 
 def test_calibrate_cli_reports_a_missing_bag(tmp_path, capsys):
-    from vehicle_estimation.tools import calibrate
+    from vehicle_estimation.training import calibrate
     parser = argparse.ArgumentParser()
     calibrate.add_arguments(parser)
     args = parser.parse_args([str(tmp_path / "nope"), "--mass", "1500", "--out", str(tmp_path / "x.yaml")])

@@ -1,4 +1,4 @@
-"""Smoke test of the paper-003 campaign (vehicle_estimation.tools.campaign --quick)."""
+"""Smoke test of the paper-003 campaign (vehicle_estimation.experiments.paper003_obd_campaign --quick)."""
 
 import argparse
 import json
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from vehicle_estimation.tools import campaign
+from vehicle_estimation.experiments import paper003_obd_campaign as campaign
 
 
 def test_quick_campaign_calibrates_and_scores_the_drives(tmp_path, capsys):

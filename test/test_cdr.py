@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
 
-from vehicle_estimation.nodes.cdr import DECODERS, DecodeError, raw_reader
+from vehicle_estimation.ros.cdr import DECODERS, DecodeError, raw_reader
 
 
 def _fill(msg, rng: np.random.Generator, depth: int = 0):

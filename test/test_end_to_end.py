@@ -1,9 +1,18 @@
-"""End to end: a short simulated drive through the launcher's replay; outputs vs truth; and a
-second replay of its first 30 s, whose estimates must be the first replay's, byte for byte."""
+"""End to end: a short simulated drive through the launcher's replay; outputs vs truth; a
+second replay of its first 30 s, whose estimates must be the first replay's, byte for byte; and
+the whole drive's estimates against a reference recorded before the last refactoring.
+
+The reference (``test/data/replay_reference.json``: message count and SHA-256 of every estimate
+topic) is the regression oracle of a change that must not move a number. A change that means to
+move the estimates rewrites it, and its commit says why:
+``VEHICLE_ESTIMATION_WRITE_REFERENCE=1 pytest test/test_end_to_end.py -k reference``.
+"""
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +24,7 @@ from rosbags.typesys import Stores, get_typestore
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
 COMPARED_PREFIX = "/estimation/"
+REFERENCE = Path(__file__).resolve().parent / "data" / "replay_reference.json"
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +56,7 @@ PREFIX_S = 30.0
 def replays(drive, tmp_path_factory):
     """The whole drive, then its first ``PREFIX_S`` (same stamps): every estimator is causal and
     steps on header stamps only, so the prefix's outputs repeat the whole drive's."""
-    from vehicle_estimation.tools.bagtools import rewrite_bag
+    from vehicle_estimation.io.bagtools import rewrite_bag
 
     prefix = rewrite_bag(drive, tmp_path_factory.mktemp("prefix") / "drive", duration_s=PREFIX_S)
     results = []
@@ -94,3 +104,18 @@ def test_estimates_track_ground_truth(replays, tmp_path):
     assert groups["vehicle_state"]["yaw_rate"]["mae"] < 0.02
     assert 500.0 < groups["mass"]["final_estimate"] < 5000.0
     assert list(tmp_path.glob("*.png"))
+
+
+def _digests(estimates: dict[str, list[bytes]]) -> dict[str, dict]:
+    return {topic: {"messages": len(msgs), "sha256": hashlib.sha256(b"".join(msgs)).hexdigest()}
+            for topic, msgs in sorted(estimates.items())}
+
+
+def test_estimates_match_the_recorded_reference(replays):
+    digests = _digests(_estimates(replays[0][0]))
+    if os.environ.get("VEHICLE_ESTIMATION_WRITE_REFERENCE") == "1":
+        REFERENCE.parent.mkdir(exist_ok=True)
+        REFERENCE.write_text(json.dumps(digests, indent=1) + "\n")
+    reference = json.loads(REFERENCE.read_text())
+    moved = [topic for topic in sorted(set(reference) | set(digests)) if reference.get(topic) != digests.get(topic)]
+    assert not moved, f"estimates differ from {REFERENCE.name} on {moved}: {digests}"

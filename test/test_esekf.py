@@ -1,4 +1,4 @@
-"""Tests for vehicle_estimation.core.esekf (paper 003 ES-EKF), on a synthetic drive.
+"""Tests for vehicle_estimation.estimators.fusion.esekf (paper 003 ES-EKF), on a synthetic drive.
 
 The generator below is self-contained: a car rests for 10 s, accelerates, turns,
 climbs and descends a 4 % grade, loses GNSS for 30 s (including a U-turn) and
@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.esekf import FusionConfig, FusionEKF
-from vehicle_estimation.core.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 
 G = 9.80665
 IMU_HZ = 200.0
@@ -411,7 +411,7 @@ def test_reset():
 
 
 def test_rotation_helpers_round_trip():
-    from vehicle_estimation.core.rotations import euler_from_quat, rotmat_to_quat
+    from vehicle_estimation.estimators.common.rotations import euler_from_quat, rotmat_to_quat
     rng = np.random.default_rng(11)
     for _ in range(200):
         q = rng.normal(size=4)

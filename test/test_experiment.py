@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from vehicle_estimation.tools.experiment import EXPERIMENTS, compare, format_comparison
+from vehicle_estimation.experiments.paper004_joint_soft_sensing import EXPERIMENTS, compare, format_comparison
 
 
 def _groups(vy_mae: float, slope_mae: float, mass_mae: float | None) -> dict:

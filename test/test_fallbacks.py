@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from vehicle_estimation import topics
+from vehicle_estimation.contract import topics
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
-from vehicle_estimation.tools.bagtools import rewrite_bag
+from vehicle_estimation.io.bagtools import rewrite_bag
 
 ESTIMATES = (topics.ODOMETRY, topics.IMU_COMPENSATED, topics.IMU_BIAS, topics.FUSION_GRADE,
              topics.ROAD_SLOPE, topics.ROAD_SLOPE_STAMPED, topics.VEHICLE_STATE, topics.SIDESLIP,

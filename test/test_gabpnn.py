@@ -8,10 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from vehicle_estimation.core import gabpnn
-from vehicle_estimation.core.gabpnn import (BPCorrection, BPNetwork, improved_roulette, load_correction,
+from vehicle_estimation.estimators.state import gabpnn
+from vehicle_estimation.estimators.state.gabpnn import (BPCorrection, BPNetwork, improved_roulette, load_correction,
                                             save_correction, train_bp, train_gabp)
-from vehicle_estimation.core.gabpnn import default_weights_path
+from vehicle_estimation.estimators.state.gabpnn import default_weights_path
 
 
 def test_improved_roulette_draws_distinct_individuals_by_fitness():
@@ -105,10 +105,10 @@ def test_features_are_rate_based_and_warm_up():
 def test_shipped_weights_load_and_correct_the_aoukf_on_a_held_out_drive():
     """The shipped correction (trained on seeds 100-103, 200-202) beats the uncorrected AO-UKF,
     and the plain UKF, on a drive it never saw (seed 77)."""
-    from vehicle_estimation.core.aoukf import AOUKFConfig, VehicleStateAOUKF
+    from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
     from vehicle_estimation.sim import simulate
     from vehicle_estimation.sim.scenario import scenario_by_name
-    from vehicle_estimation.tools.paper002 import drive_from_sim, run_estimator, score
+    from vehicle_estimation.experiments.paper002_aoukf_gabpnn import drive_from_sim, run_estimator, score
 
     correction = load_correction(default_weights_path("sedan_d_class"))
     scn = dataclasses.replace(scenario_by_name("paper002_mixed"), duration_s=60.0, seed=77)

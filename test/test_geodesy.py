@@ -1,10 +1,10 @@
-"""Tests for vehicle_estimation.core.geodesy (WGS84 <-> ENU)."""
+"""Tests for vehicle_estimation.estimators.common.geodesy (WGS84 <-> ENU)."""
 import math
 
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.geodesy import (WGS84_A, WGS84_B, LocalTangentPlane, ecef_to_geodetic,
+from vehicle_estimation.estimators.common.geodesy import (WGS84_A, WGS84_B, LocalTangentPlane, ecef_to_geodetic,
                                              geodetic_to_ecef)
 
 

@@ -14,11 +14,12 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from vehicle_estimation import topics
+from vehicle_estimation.contract import topics
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
-from vehicle_estimation.tools import inspect_bag, node_plan
-from vehicle_estimation.tools.inspect_bag import InspectError, format_summary, summarize
+from vehicle_estimation.io import inspect_bag
+from vehicle_estimation.launcher import node_plan
+from vehicle_estimation.io.inspect_bag import InspectError, format_summary, summarize
 
 ROOT = Path(__file__).resolve().parent.parent
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -209,7 +210,7 @@ def test_cli_exit_code_and_json(bags):
     ("mass", "mass_node", "bool", "require_slope"),
 ])
 def test_node_defaults_match_the_node_sources(node, module, kind, param):
-    source = (ROOT / "vehicle_estimation" / "nodes" / f"{module}.py").read_text(encoding="utf-8")
+    source = (ROOT / "vehicle_estimation" / "ros" / f"{module}.py").read_text(encoding="utf-8")
     found = re.findall(rf'declare_{kind}\(\s*"{re.escape(param)}",\s*("[^"]*"|True|False)', source)
     assert len(found) == 1, f"{module}.py declares {param!r} {len(found)} times"
     declared = found[0].strip('"') if kind == "str" else found[0] == "True"

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from vehicle_estimation.nodes import PIPELINE
+from vehicle_estimation.ros import PIPELINE
 
 
 def _children(pid: int) -> list[int]:

@@ -1,4 +1,4 @@
-"""Lint and type checks (CI): ruff on the package and the tests, mypy on the cores.
+"""Lint and type checks (CI): ruff on the package and the tests, mypy on the estimator cores.
 
 mypy reads its configuration from ``setup.cfg`` (``[mypy]``), so both tools run from the
 repository root. A test is skipped only when its tool is not installed.
@@ -33,5 +33,5 @@ def test_ruff_pyflakes_and_syntax():
 
 
 def test_mypy_core():
-    proc = _run_tool("mypy", "--config-file", "setup.cfg", "vehicle_estimation/core")
+    proc = _run_tool("mypy", "--config-file", "setup.cfg", "vehicle_estimation/estimators")
     assert proc.returncode == 0, _report(proc)

@@ -1,4 +1,4 @@
-"""Tests of the paper-004 FFRLS mass estimator (vehicle_estimation.core.mass_ffrls)."""
+"""Tests of the paper-004 FFRLS mass estimator (vehicle_estimation.estimators.mass.mass_ffrls)."""
 
 import dataclasses
 import inspect
@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.mass_ffrls import (
+from vehicle_estimation.estimators.mass.mass_ffrls import (
     PAPER_SAMPLE_PERIOD_S,
     REJECT_REASONS,
     FFRLSMassConfig,
     FFRLSMassEstimator,
     equivalent_forgetting_factor,
 )
-from vehicle_estimation.core.mass_rls import LongitudinalMassEstimator
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 SEDAN = load_vehicle_params(PARAMS_DIR / "sedan_d_class.yaml")   # paper 004 Table 1

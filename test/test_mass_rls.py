@@ -1,4 +1,4 @@
-"""Tests of the paper-003 mass estimation core (vehicle_estimation.core.mass_rls)."""
+"""Tests of the paper-003 mass estimation core (vehicle_estimation.estimators.mass.mass_rls)."""
 
 import math
 from pathlib import Path
@@ -6,14 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.mass_rls import (
+from vehicle_estimation.estimators.mass.mass_rls import (
     EngineTorqueRegression,
     LongitudinalMassEstimator,
     MassRLSConfig,
     RecursiveLeastSquares,
     predict_gear,
 )
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 AUDI = load_vehicle_params(PARAMS_DIR / "audi_a4.yaml")

@@ -1,4 +1,4 @@
-"""Tests of the paper-000 mass networks (vehicle_estimation.core.mass_transformer): shapes,
+"""Tests of the paper-000 mass networks (vehicle_estimation.estimators.mass.mass_transformer): shapes,
 save/load without pickle, refusal of altered files, the shipped model, the estimator's network
 path, and a small smoke run of the dataset, training and comparison commands."""
 
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from vehicle_estimation.core.mass_transformer import (
+from vehicle_estimation.estimators.mass.mass_transformer import (
     MassModel, ModelSpec, TransformerMassNet, build_network)
-from vehicle_estimation.core.ta_aekf import (
+from vehicle_estimation.estimators.mass.ta_aekf import (
     DEFAULT_MODEL_STEM, NN_FEATURES, TaAekfConfig, TaAekfMassEstimator, fit_confidence_gaussian)
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 torch.set_num_threads(1)
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
@@ -153,9 +153,9 @@ def test_shipped_model_loads_and_is_plausible():
 
 
 def test_estimator_runs_the_network_every_block_on_the_feature_windows(monkeypatch):
-    """The estimator's windows are those of tools/truck_data.feature_blocks (train = use)."""
-    from vehicle_estimation.tools import truck_data as td
-    from vehicle_estimation.tools.paper000 import run_filter
+    """The estimator's windows are those of training/truck_data.feature_blocks (train = use)."""
+    from vehicle_estimation.training import truck_data as td
+    from vehicle_estimation.experiments.paper000_ta_aekf import run_filter
 
     model = tiny_model(window=6, block_steps=5)
     n = 400
@@ -188,8 +188,9 @@ def test_estimator_runs_the_network_every_block_on_the_feature_windows(monkeypat
 
 def test_commands_smoke(tmp_path, capsys):
     """Dataset -> training of the three networks -> comparison, all tiny."""
-    from vehicle_estimation.tools import paper000, truck_data
-    from vehicle_estimation.tools.train_mass_transformer import train_one
+    from vehicle_estimation.experiments import paper000_ta_aekf as paper000
+    from vehicle_estimation.training import truck_data
+    from vehicle_estimation.training.train_mass_transformer import train_one
 
     data = truck_data.generate(block_steps=10, payloads=(4000.0, 36000.0), duration_s=6.0, progress=False)
     assert set(np.unique(data["drive_split"])) == {0, 1, 2}

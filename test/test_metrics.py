@@ -1,11 +1,11 @@
-"""Tests of vehicle_estimation.tools.metrics on hand-computed arrays."""
+"""Tests of vehicle_estimation.evaluation.metrics on hand-computed arrays."""
 
 import math
 
 import numpy as np
 import pytest
 
-from vehicle_estimation.tools import metrics as m
+from vehicle_estimation.evaluation import metrics as m
 
 
 def test_basic_errors_hand_computed():
@@ -81,7 +81,7 @@ def test_estimate_lag_known_shift():
 
 
 def test_consistency_of_an_honest_and_of_a_too_small_variance():
-    from vehicle_estimation.tools.metrics import consistency
+    from vehicle_estimation.evaluation.metrics import consistency
 
     rng = np.random.default_rng(4)
     error = rng.normal(0.0, 2.0, 200_000)

@@ -21,13 +21,13 @@ import rclpy
 from rclpy.parameter import Parameter
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
-
 from rosharness import init_rclpy, vehicle_overrides
-from vehicle_estimation.core.gabpnn import default_weights_path
-from vehicle_estimation.core.ta_aekf import DEFAULT_MODEL_STEM
-from vehicle_estimation.nodes.base import ParameterError
-from vehicle_estimation.nodes.mass_node import MassNode
-from vehicle_estimation.nodes.state_node import StateNode
+
+from vehicle_estimation.estimators.mass.ta_aekf import DEFAULT_MODEL_STEM
+from vehicle_estimation.estimators.state.gabpnn import default_weights_path
+from vehicle_estimation.ros.mass_node import MassNode
+from vehicle_estimation.ros.runtime.parameters import ParameterError
+from vehicle_estimation.ros.state_node import StateNode
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
 TRUCK_MASS = 18042.0     # payload 12 t: far from the prior of the network's training mean

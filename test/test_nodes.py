@@ -9,23 +9,23 @@ import sys
 import numpy as np
 import pytest
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
+from rosharness import Harness, init_rclpy, sec_to_time, vehicle_overrides
 from sensor_msgs.msg import Imu, JointState, NavSatFix
 from std_msgs.msg import Float64
-from diagnostic_msgs.msg import DiagnosticArray
 
-from rosharness import Harness, init_rclpy, sec_to_time, vehicle_overrides
-from vehicle_estimation import topics
-from vehicle_estimation.core.geodesy import LocalTangentPlane
-from vehicle_estimation.nodes.fusion_node import FusionNode
-from vehicle_estimation.nodes import conversions
-from vehicle_estimation.nodes.base import companion
-from vehicle_estimation.nodes.mass_node import MassNode
-from vehicle_estimation.nodes.slope_node import SlopeNode
-from vehicle_estimation.nodes.state_node import StateNode
+from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
 from vehicle_estimation.paths import params_file
+from vehicle_estimation.ros import conversions
+from vehicle_estimation.ros.fusion_node import FusionNode
+from vehicle_estimation.ros.mass_node import MassNode
+from vehicle_estimation.ros.runtime.upstream import companion
+from vehicle_estimation.ros.slope_node import SlopeNode
+from vehicle_estimation.ros.state_node import StateNode
 
 G = 9.80665
 T0 = 1_700_000_000.0
@@ -122,8 +122,11 @@ def test_fusion_node_tracks_a_straight_drive():
 def test_imu_bias_message_carries_the_mounting():
     """estimation/imu_bias: bias in imu_link, orientation = imu_link -> base_link; the
     consumers' correction removes the bias and rotates into base_link."""
-    from vehicle_estimation.core.rotations import quat_from_euler, quat_to_rotmat
-    from vehicle_estimation.nodes.base import FusionImuBias
+    from vehicle_estimation.estimators.common.rotations import (
+        quat_from_euler,
+        quat_to_rotmat,
+    )
+    from vehicle_estimation.ros.runtime.upstream import FusionImuBias
 
     q = quat_from_euler(0.01, -0.02, 0.005)
     msg = Imu()
@@ -442,7 +445,7 @@ def test_mass_node_ffrls_uses_braking_samples():
 ])
 def test_bad_parameter_stops_node_naming_it(module, override, name):
     proc = subprocess.run(
-        [sys.executable, "-m", f"vehicle_estimation.nodes.{module}", "--ros-args",
+        [sys.executable, "-m", f"vehicle_estimation.ros.{module}", "--ros-args",
          "--params-file", str(params_file("sedan_d_class"))]
         + [arg for assignment in override.split(";") for arg in ("-p", assignment)],
         capture_output=True, text=True, timeout=60)

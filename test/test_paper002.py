@@ -9,7 +9,7 @@ import sys
 
 def test_paper002_command_prints_the_table_and_writes_json_and_plots(tmp_path):
     out = tmp_path / "p002"
-    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation.tools.paper002", "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation.experiments.paper002_aoukf_gabpnn", "--out", str(out),
                            "--duration", "8", "--no-paper-observations"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

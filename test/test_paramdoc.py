@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from vehicle_estimation.tools.paramdoc import BEGIN, END, replace_section
+from vehicle_estimation.ros.paramdoc import BEGIN, END, replace_section
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

@@ -1,6 +1,6 @@
 """Property-based tests (hypothesis) of the message conversions and of every estimator core.
 
-1. Message -> array conversions (nodes/conversions.py) and the raw CDR views (nodes/cdr.py):
+1. Message -> array conversions (ros/conversions.py) and the raw CDR views (ros/cdr.py):
    on random messages the conversions return the message fields in the documented units and
    order, raise nothing but ``MalformedMessage`` (and that exactly when a JointState array
    has the wrong length), and a view read from the serialized bytes equals rclpy's own
@@ -34,13 +34,13 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Imu, JointState
 
-from vehicle_estimation import topics
-from vehicle_estimation.core.aoukf import AOUKFConfig, VehicleStateAOUKF
-from vehicle_estimation.core.ckf import VehicleStateCKF
-from vehicle_estimation.core.esekf import FusionConfig, FusionEKF
-from vehicle_estimation.core.mass_ffrls import FFRLSMassConfig, FFRLSMassEstimator
-from vehicle_estimation.core.mass_rls import LongitudinalMassEstimator, MassRLSConfig
-from vehicle_estimation.core.slope import (
+from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
+from vehicle_estimation.estimators.state.ckf import VehicleStateCKF
+from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.estimators.mass.mass_ffrls import FFRLSMassConfig, FFRLSMassEstimator
+from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator, MassRLSConfig
+from vehicle_estimation.estimators.slope.slope import (
     ClassicalSlopeConfig,
     ClassicalSlopeObserver,
     CubicPredictionSlopeConfig,
@@ -48,12 +48,12 @@ from vehicle_estimation.core.slope import (
     PitchGradeConfig,
     PitchGradeSlope,
 )
-from vehicle_estimation.core.ta_aekf import TaAekfConfig, TaAekfMassEstimator
-from vehicle_estimation.core.vbackf import VehicleStateVBACKF
-from vehicle_estimation.core.vehicle_model import VehicleInputs
-from vehicle_estimation.core.wind import WindEstimator
-from vehicle_estimation.nodes.cdr import DECODERS, raw_reader
-from vehicle_estimation.nodes.conversions import (
+from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig, TaAekfMassEstimator
+from vehicle_estimation.estimators.state.vbackf import VehicleStateVBACKF
+from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
+from vehicle_estimation.estimators.mass.wind import WindEstimator
+from vehicle_estimation.ros.cdr import DECODERS, raw_reader
+from vehicle_estimation.ros.conversions import (
     MAX_ANGULAR_RATE,
     MAX_SPECIFIC_FORCE,
     MalformedMessage,
@@ -66,7 +66,7 @@ from vehicle_estimation.nodes.conversions import (
     planar_velocity_entry,
     powertrain_reading,
 )
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 SEDAN = load_vehicle_params(PARAMS_DIR / "sedan_d_class.yaml")
@@ -601,8 +601,8 @@ def test_ta_aekf_without_network_random_inputs(fixed_tau, accel_from_speed, step
 @functools.cache
 def _shipped_mass_model():
     pytest.importorskip("torch")
-    from vehicle_estimation.core.mass_transformer import MassModel
-    from vehicle_estimation.core.ta_aekf import DEFAULT_MODEL_STEM
+    from vehicle_estimation.estimators.mass.mass_transformer import MassModel
+    from vehicle_estimation.estimators.mass.ta_aekf import DEFAULT_MODEL_STEM
     return MassModel.load(DEFAULT_MODEL_STEM)
 
 

@@ -25,18 +25,18 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.parameter import Parameter
+from rosharness import Harness, init_rclpy, sec_to_time, vehicle_overrides
 from sensor_msgs.msg import Imu, JointState, NavSatFix
 from std_msgs.msg import Float64
+from test_nodes import T0, G, fix_msg, imu_msg, speed_msg
 
-from rosharness import Harness, init_rclpy, sec_to_time, vehicle_overrides
-from test_nodes import G, T0, fix_msg, imu_msg, speed_msg
-from vehicle_estimation import topics
-from vehicle_estimation.core.geodesy import LocalTangentPlane
-from vehicle_estimation.nodes.base import companion
-from vehicle_estimation.nodes.fusion_node import FusionNode
-from vehicle_estimation.nodes.mass_node import MassNode
-from vehicle_estimation.nodes.slope_node import SlopeNode
-from vehicle_estimation.nodes.state_node import StateNode
+from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.ros.fusion_node import FusionNode
+from vehicle_estimation.ros.mass_node import MassNode
+from vehicle_estimation.ros.runtime.upstream import companion
+from vehicle_estimation.ros.slope_node import SlopeNode
+from vehicle_estimation.ros.state_node import StateNode
 
 NAN, INF = math.nan, math.inf
 KMH_400 = 400.0 / 3.6
@@ -712,7 +712,7 @@ def test_gnss_outage_of_60_s_through_the_fusion_node():
     constraints. Errors at the end of the outage are printed and bounded."""
     from rclpy.serialization import serialize_message
 
-    from vehicle_estimation.core.rotations import euler_from_quat
+    from vehicle_estimation.estimators.common.rotations import euler_from_quat
     from vehicle_estimation.sim.profiles import SpeedProfile
     from vehicle_estimation.sim.road import RoadSpec
     from vehicle_estimation.sim.scenario import SensorConfig, default_scenario

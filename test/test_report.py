@@ -10,7 +10,7 @@ pytest.importorskip("rosbags")
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from vehicle_estimation.tools import report  # noqa: E402
+from vehicle_estimation.evaluation import report  # noqa: E402
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 Float64 = TS.types["std_msgs/msg/Float64"]

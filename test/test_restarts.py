@@ -15,7 +15,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from vehicle_estimation.nodes.persistence import StateFileError, load_state, save_state
+from vehicle_estimation.ros.persistence import StateFileError, load_state, save_state
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
 PRIOR_KG = 1000.0     # params/estimation.yaml: mass.initial_mass (paper 003)
@@ -96,7 +96,7 @@ def _replay_killing(bag: Path, out: Path, victims: list[tuple[str, float]], tmp:
     reader.start()
     for (name, _), path in zip(victims, resume):
         assert paused.acquire(timeout=600), "the replay never paused: " + "\n".join(err[-20:])
-        pids = [pid for pid, cmd in _children(proc.pid).items() if f"vehicle_estimation.nodes.{name}" in cmd]
+        pids = [pid for pid, cmd in _children(proc.pid).items() if f"vehicle_estimation.ros.{name}" in cmd]
         assert len(pids) == 1, _children(proc.pid)
         os.kill(pids[0], signal.SIGKILL)
         path.touch()

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.rotations import quat_from_euler
-from vehicle_estimation.nodes.conversions import lateral_gravity_entry
+from vehicle_estimation.estimators.common.rotations import quat_from_euler
+from vehicle_estimation.ros.conversions import lateral_gravity_entry
 
 PARAMS = Path(__file__).resolve().parents[1] / "params"
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation import topics as T
+from vehicle_estimation.contract import topics as T
 from vehicle_estimation.sim import (SCENARIOS, RoadSpec, Scenario, SensorConfig, SpeedProfile,
                                     default_scenario, load_cycle, load_vehicle, params_path,
                                     scenario_by_name, simulate, write_bag)

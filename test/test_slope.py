@@ -1,11 +1,11 @@
-"""Tests of the road-slope observers (vehicle_estimation.core.slope)."""
+"""Tests of the road-slope observers (vehicle_estimation.estimators.slope.slope)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.slope import (
+from vehicle_estimation.estimators.slope.slope import (
     SLOPE_METHODS,
     ClassicalSlopeConfig,
     ClassicalSlopeObserver,
@@ -128,7 +128,7 @@ def test_registry():
 # cubic_prediction: slope prediction model + cubic observer (paper 004 Sec. 5, Eqs. 15-27)
 # --------------------------------------------------------------------------------------
 
-from vehicle_estimation.core.slope import (  # noqa: E402
+from vehicle_estimation.estimators.slope.slope import (  # noqa: E402
     PAPER_LUENBERGER_GAIN,
     CubicPredictionSlopeConfig,
     CubicPredictionSlopeObserver,

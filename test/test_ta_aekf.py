@@ -1,4 +1,4 @@
-"""Tests of the paper-000 TA-AEKF (vehicle_estimation.core.ta_aekf): tau (Eqs. 16-19), the
+"""Tests of the paper-000 TA-AEKF (vehicle_estimation.estimators.mass.ta_aekf): tau (Eqs. 16-19), the
 Jacobians (Eqs. 32-34) against finite differences and the paper's own formulas, Algorithm 1's
 adaptive R, and the node-facing estimator (bad input, persistence, config)."""
 
@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.ta_aekf import (
+from vehicle_estimation.estimators.mass.ta_aekf import (
     REJECT_REASONS, AdaptiveEKF, DriveInput, TaAekfConfig, TaAekfMassEstimator, confidence_level,
     fit_confidence_gaussian, gaussian_density, longitudinal_accel, peak_density, transition,
     transition_jacobian)
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 TRUCK = load_vehicle_params(PARAMS_DIR / "heavy_truck.yaml")

@@ -12,7 +12,7 @@ import pytest
 
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.validation import baselines
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 VEHICLE = load_vehicle_params(params_file("sedan_d_class"))
 G = VEHICLE.gravity

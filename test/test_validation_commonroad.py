@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("vehiclemodels")
 
-from vehicle_estimation import topics as T
+from vehicle_estimation.contract import topics as T
 from vehicle_estimation.validation import commonroad as cr
 from vehicle_estimation.validation.lateral import read_drive
 

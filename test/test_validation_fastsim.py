@@ -12,9 +12,9 @@ import pytest
 
 fastsim = pytest.importorskip("fastsim")
 
-from vehicle_estimation import topics as T
+from vehicle_estimation.contract import topics as T
 from vehicle_estimation.validation import fastsim_drive as fd
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_FILE = Path(__file__).resolve().parents[1] / "params" / f"{fd.VEHICLE_NAME}.yaml"
 DURATION = 100.0  # s: two starts, cruise, braking, hills up and down
@@ -177,7 +177,7 @@ def test_cli(tmp_path, monkeypatch):
 def test_a_short_hilly_fastsim_drive_through_the_nodes(tmp_path):
     """120 s of the drive (GNSS, wheel speeds, drive force) replayed with the shipped params and
     the FASTSim vehicle file: mass within +-5 % over the last half, slope RMSE below 0.8 deg."""
-    from vehicle_estimation.tools import report
+    from vehicle_estimation.evaluation import report
 
     bag = fd.write_drive(fd.sensor_result(fd.simulate(E2E_DURATION), seed=0), tmp_path / "fastsim_hills")
     out = tmp_path / "estimates"

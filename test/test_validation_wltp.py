@@ -12,9 +12,9 @@ import pytest
 
 wltp = pytest.importorskip("wltp", reason="the JRC WLTP gear-shift tool is not installed: pip install wltp==0.1.2a0")
 
-from vehicle_estimation import topics as T
+from vehicle_estimation.contract import topics as T
 from vehicle_estimation.validation import wltp_drive as wd
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 DURATION = 100.0   # s: a start, gears 2-6, cruises at 48, 90 and 62 km/h, hills
 BAG_DURATION = 10.0

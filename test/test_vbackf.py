@@ -6,15 +6,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.ckf import CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig
-from vehicle_estimation.core.vbackf import VariationalBayesCKF, VBConfig, VehicleStateVBACKF
-from vehicle_estimation.core.vehicle_model import (
+from vehicle_estimation.estimators.state.ckf import CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.estimators.state.vbackf import VariationalBayesCKF, VBConfig, VehicleStateVBACKF
+from vehicle_estimation.estimators.state.vehicle_model import (
     VehicleInputs,
     free_rolling_wheel_speeds,
     measurement,
     transition,
 )
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 SEDAN = load_vehicle_params(PARAMS_DIR / "sedan_d_class.yaml")

@@ -1,4 +1,4 @@
-"""Tests of the paper-004 vehicle model (vehicle_estimation.core.vehicle_model, Eqs. 1-9)."""
+"""Tests of the paper-004 vehicle model (vehicle_estimation.estimators.state.vehicle_model, Eqs. 1-9)."""
 
 import math
 from pathlib import Path
@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.vehicle_model import (
+from vehicle_estimation.estimators.state.vehicle_model import (
     VehicleInputs,
     free_rolling_wheel_speeds,
     measurement,
@@ -16,7 +16,7 @@ from vehicle_estimation.core.vehicle_model import (
     tyre_forces,
     _dugoff,
 )
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 SEDAN = load_vehicle_params(PARAMS_DIR / "sedan_d_class.yaml")

@@ -1,4 +1,4 @@
-"""Tests of the ambient-wind estimator (vehicle_estimation.core.wind) and its use in the RLS mass core."""
+"""Tests of the ambient-wind estimator (vehicle_estimation.estimators.mass.wind) and its use in the RLS mass core."""
 
 import math
 from pathlib import Path
@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.core.mass_rls import LongitudinalMassEstimator, MassRLSConfig
-from vehicle_estimation.core.wind import WindEstimator, WindEstimatorConfig
-from vehicle_estimation.vehicle import load_vehicle_params
+from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator, MassRLSConfig
+from vehicle_estimation.estimators.mass.wind import WindEstimator, WindEstimatorConfig
+from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 AUDI = load_vehicle_params(PARAMS_DIR / "audi_a4.yaml")
@@ -16,7 +16,7 @@ K_DRAG = 0.5 * AUDI.air_density * AUDI.drag_area
 
 
 def _force_samples(rng, wind, mass=1700.0, n=4000, noise=100.0):
-    """Eq. (*) of core/wind.py on a route whose heading drifts through a full turn."""
+    """Eq. (*) of estimators/mass/wind.py on a route whose heading drifts through a full turn."""
     t = 0.25 * np.arange(1, n + 1)
     heading = np.cumsum(rng.normal(0.0, 0.03, n)) + np.linspace(0.0, 2.0 * math.pi, n)
     v = rng.uniform(10.0, 35.0, n)
@@ -102,7 +102,7 @@ def test_mass_core_unchanged_when_wind_compensation_is_off():
 
 def _simulated_windy_drive(wind_from_deg: float, duration: float = 1500.0):
     from vehicle_estimation.sim.simulate import simulate
-    from vehicle_estimation.tools.campaign import ROUTE_MIX, Drive, _scenario, drive_windows
+    from vehicle_estimation.experiments.paper003_obd_campaign import ROUTE_MIX, Drive, _scenario, drive_windows
     drive = Drive("W", "wind", wind_speed=5.0, wind_from_deg=wind_from_deg, seed=204)
     scn = _scenario("windy", drive.vehicle(AUDI), duration, ROUTE_MIX, drive.seed, drive.wind_enu())
     return drive, drive_windows(simulate(scn), AUDI, 11)
@@ -111,7 +111,7 @@ def _simulated_windy_drive(wind_from_deg: float, duration: float = 1500.0):
 def test_wind_estimator_recovers_a_planted_wind_in_a_simulated_drive():
     """A 5 m/s wind from the west on a 25 min mixed drive, with the vehicle calibrated on a
     separate still-air training drive (the paper's two phases)."""
-    from vehicle_estimation.tools.campaign import calibrate_simulated, drive_metrics, run_core
+    from vehicle_estimation.experiments.paper003_obd_campaign import calibrate_simulated, drive_metrics, run_core
     _, fitted, regression = calibrate_simulated(AUDI, 900.0)
     drive, w = _simulated_windy_drive(270.0)
     off, _ = run_core(w, fitted, regression)

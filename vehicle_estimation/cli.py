@@ -54,14 +54,14 @@ def _params_files(args: argparse.Namespace) -> list[Path]:
 
 
 def _node_group(args: argparse.Namespace, overrides=None, log_dir: Path | None = None, remaps=()):
-    from vehicle_estimation.tools.processes import NodeGroup
+    from vehicle_estimation.launcher.processes import NodeGroup
     return NodeGroup(_params_files(args), namespace=args.namespace, overrides=overrides or {}, log_dir=log_dir,
                      remaps=list(remaps))
 
 
 def _remap_arg(text: str) -> tuple[str, str]:
     """argparse type of ``--remap FROM:=TO``: a malformed one is a usage error that says why."""
-    from vehicle_estimation.topics import parse_remap
+    from vehicle_estimation.contract.topics import parse_remap
     try:
         return parse_remap(text)
     except ValueError as exc:
@@ -123,8 +123,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from vehicle_estimation.tools.inspect_bag import InspectError, format_summary, summarize
-    from vehicle_estimation.tools.replay import ReplayError, print_stats, replay
+    from vehicle_estimation.io.inspect_bag import InspectError, format_summary, summarize
+    from vehicle_estimation.launcher.replay import ReplayError, print_stats, replay
     # What `inspect` says of this bag with these params: the sources and fallbacks each node
     # will use, and what will stay empty, before minutes of replay.
     try:
@@ -147,7 +147,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from vehicle_estimation.tools import report
+    from vehicle_estimation.evaluation import report
     argv = [args.bag] + (["--out", args.out] if args.out else [])
     return report.main(argv)
 
@@ -159,8 +159,8 @@ def cmd_simulate(args: argparse.Namespace, rest: list[str]) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from vehicle_estimation.sim import default_scenario, scenario_by_name, simulate, write_bag
-    from vehicle_estimation.tools import report
-    from vehicle_estimation.tools.replay import ReplayError, print_stats, replay
+    from vehicle_estimation.evaluation import report
+    from vehicle_estimation.launcher.replay import ReplayError, print_stats, replay
 
     out = Path(args.out)
     drive, estimates, report_dir = out / "drive", out / "estimates", out / "report"
@@ -187,8 +187,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from vehicle_estimation.tools import experiment
-    from vehicle_estimation.tools.processes import NodeGroup
+    from vehicle_estimation.experiments import paper004_joint_soft_sensing as experiment
+    from vehicle_estimation.launcher.processes import NodeGroup
 
     def node_group(params, overrides, log_dir):
         files = [params_file(args.vehicle)] + [params_file(name) for name in params]
@@ -201,13 +201,13 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from vehicle_estimation.tools import bench
+    from vehicle_estimation.evaluation import bench
     return bench.main(args)
 
 
 def cmd_stanford(args: argparse.Namespace) -> int:
-    from vehicle_estimation.tools import stanford
-    from vehicle_estimation.tools.processes import NodeGroup
+    from vehicle_estimation.validation import stanford
+    from vehicle_estimation.launcher.processes import NodeGroup
 
     def node_group(params, overrides, log_dir):
         files = [params_file(stanford.VEHICLE)] + list(params)
@@ -218,7 +218,7 @@ def cmd_stanford(args: argparse.Namespace) -> int:
 
 #: Subcommands that are one tool module each (``add_arguments(parser)`` and ``main(args)``).
 def cmd_validate(args: argparse.Namespace) -> int:
-    from vehicle_estimation.tools.processes import NodeGroup
+    from vehicle_estimation.launcher.processes import NodeGroup
     from vehicle_estimation.validation import validate
 
     def node_group(params, overrides, log_dir):
@@ -228,14 +228,14 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 TOOL_COMMANDS = {
-    "paper000": ("paper000", "paper 000: TA-AEKF vs EKF, MLP, LSTM and transformer (Tables 2-4, 6)"),
-    "paper002": ("paper002", "paper 002: EKF, UKF, anti-outlier UKF (+ GA-BPNN) on outliers (Table 2)"),
-    "inspect": ("inspect_bag", "what a bag holds and what each node will make of it (before a replay)"),
-    "calibrate": ("calibrate", "learn gear ratios, torque map, CdA, Cr, inertias from one drive of known mass"),
-    "campaign": ("campaign", "calibration plus paper 003's drive campaign (loads, tyres, windows, wind)"),
-    "truck-data": ("truck_data", "simulate the paper-000 truck drives the mass networks train on"),
-    "train-mass-transformer": ("train_mass_transformer", "train the paper-000 mass networks (safetensors)"),
-    "train-gabpnn": ("train_gabpnn", "train the paper-002 GA-BPNN correction (npz, no pickle)"),
+    "paper000": ("experiments.paper000_ta_aekf", "paper 000: TA-AEKF vs EKF, MLP, LSTM and transformer (Tables 2-4, 6)"),
+    "paper002": ("experiments.paper002_aoukf_gabpnn", "paper 002: EKF, UKF, anti-outlier UKF (+ GA-BPNN) on outliers (Table 2)"),
+    "inspect": ("io.inspect_bag", "what a bag holds and what each node will make of it (before a replay)"),
+    "calibrate": ("training.calibrate", "learn gear ratios, torque map, CdA, Cr, inertias from one drive of known mass"),
+    "campaign": ("experiments.paper003_obd_campaign", "calibration plus paper 003's drive campaign (loads, tyres, windows, wind)"),
+    "truck-data": ("training.truck_data", "simulate the paper-000 truck drives the mass networks train on"),
+    "train-mass-transformer": ("training.train_mass_transformer", "train the paper-000 mass networks (safetensors)"),
+    "train-gabpnn": ("training.train_gabpnn", "train the paper-002 GA-BPNN correction (npz, no pickle)"),
 }
 
 
@@ -271,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_node_options(p)
 
     p = sub.add_parser("experiment", help="contrast experiment of a paper: one drive, two strategies")
-    from vehicle_estimation.tools.experiment import add_arguments
+    from vehicle_estimation.experiments.paper004_joint_soft_sensing import add_arguments
     add_arguments(p)
     p.add_argument("--vehicle", default="sedan_d_class",
                    help="vehicle params file or name in params/ (default: sedan_d_class)")
@@ -285,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
                    add_help=False)
 
     p = sub.add_parser("stanford", help="real Stanford drive: state filters vs the linear single-track KF")
-    from vehicle_estimation.tools.stanford import add_arguments as stanford_arguments
+    from vehicle_estimation.validation.stanford import add_arguments as stanford_arguments
     stanford_arguments(p)
     p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
 
@@ -296,12 +296,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
 
     p = sub.add_parser("bench", help="speed and memory figures: cores, pipeline replay, live (a table)")
-    from vehicle_estimation.tools.bench import add_arguments as bench_arguments
+    from vehicle_estimation.evaluation.bench import add_arguments as bench_arguments
     bench_arguments(p)
 
     for command, (module, help_text) in TOOL_COMMANDS.items():
         p = sub.add_parser(command, help=help_text)
-        importlib.import_module(f"vehicle_estimation.tools.{module}").add_arguments(p)
+        importlib.import_module(f"vehicle_estimation.{module}").add_arguments(p)
     return parser
 
 
@@ -310,17 +310,17 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "simulate":
         return cmd_simulate(argparse.Namespace(), argv[1:])
     if argv and argv[0] == "import":
-        from vehicle_estimation.tools import importer
+        from vehicle_estimation.io import importer
         return importer.main(argv[1:])
     if argv and argv[0] == "params":
-        from vehicle_estimation.tools import paramdoc
+        from vehicle_estimation.ros import paramdoc
         return paramdoc.main(argv[1:])
     args = build_parser().parse_args(argv)
     commands = {"demo": cmd_demo, "run": cmd_run, "replay": cmd_replay, "report": cmd_report,
                 "experiment": cmd_experiment, "stanford": cmd_stanford, "bench": cmd_bench,
                 "validate": cmd_validate}
     if args.command in TOOL_COMMANDS:
-        return importlib.import_module(f"vehicle_estimation.tools.{TOOL_COMMANDS[args.command][0]}").main(args)
+        return importlib.import_module(f"vehicle_estimation.{TOOL_COMMANDS[args.command][0]}").main(args)
     return commands[args.command](args)
 
 

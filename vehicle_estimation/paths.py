@@ -7,6 +7,7 @@ from pathlib import Path
 
 PACKAGE = "vehicle_estimation"
 _SOURCE_ROOT = Path(__file__).resolve().parent.parent
+MODELS_DIR = Path(__file__).resolve().parent / "models"   # shipped weights (package data)
 
 
 def params_dir() -> Path:

@@ -6,15 +6,15 @@ Public API::
         simulate, write_bag, default_scenario, scenario_by_name, SCENARIOS, params_path)
 """
 
-from .profiles import SpeedProfile, load_cycle
-from .road import RoadSpec
-from .scenario import SCENARIOS, Scenario, SensorConfig, default_scenario, load_vehicle, params_path, scenario_by_name
-from .simulate import SimResult, simulate
+from vehicle_estimation.sim.profiles import SpeedProfile, load_cycle
+from vehicle_estimation.sim.road import RoadSpec
+from vehicle_estimation.sim.scenario import SCENARIOS, Scenario, SensorConfig, default_scenario, load_vehicle, params_path, scenario_by_name
+from vehicle_estimation.sim.simulate import SimResult, simulate
 
 
 def write_bag(result, path):
     """Write ``result`` as a rosbag2 MCAP directory at ``path`` (must not exist); returns path."""
-    from .bag import write_bag as _write_bag
+    from vehicle_estimation.sim.bag import write_bag as _write_bag
     return _write_bag(result, path)
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from .. import topics as T
+from vehicle_estimation.contract import topics as T
 
 T0_NS = 1_700_000_000 * 1_000_000_000
 

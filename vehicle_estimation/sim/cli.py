@@ -7,8 +7,8 @@ import dataclasses
 import sys
 import time
 
-from ..vehicle import load_vehicle_params
-from .scenario import SCENARIOS, params_path, scenario_by_name
+from vehicle_estimation.contract.vehicle import load_vehicle_params
+from vehicle_estimation.sim.scenario import SCENARIOS, params_path, scenario_by_name
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from . import simulate, write_bag
+    from vehicle_estimation.sim import simulate, write_bag
 
     scn = scenario_by_name(args.scenario)
     changes = {}

@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from ..vehicle import VehicleParams
+from vehicle_estimation.contract.vehicle import VehicleParams
 
 
 # ----------------------------------------------------------------------------- engine map

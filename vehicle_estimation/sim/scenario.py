@@ -8,9 +8,9 @@ import sys
 from pathlib import Path
 from typing import Callable, Optional
 
-from ..vehicle import VehicleParams, load_vehicle_params
-from .profiles import SpeedProfile
-from .road import RoadSpec
+from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
+from vehicle_estimation.sim.profiles import SpeedProfile
+from vehicle_estimation.sim.road import RoadSpec
 
 
 def params_path(name: str) -> Path:

@@ -8,11 +8,11 @@ import math
 import numpy as np
 from scipy.signal import lfilter
 
-from .dynamics import simulate_dynamics
-from .geodesy import enu_to_geodetic
-from .profiles import reference_distance, reference_speed
-from .road import Road, build_road
-from .scenario import Scenario, SensorConfig
+from vehicle_estimation.sim.dynamics import simulate_dynamics
+from vehicle_estimation.sim.geodesy import enu_to_geodetic
+from vehicle_estimation.sim.profiles import reference_distance, reference_speed
+from vehicle_estimation.sim.road import Road, build_road
+from vehicle_estimation.sim.scenario import Scenario, SensorConfig
 
 TRUTH_RATE = 100.0
 

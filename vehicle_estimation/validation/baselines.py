@@ -15,7 +15,7 @@ data, so that a number says how much better (or worse) than the obvious method a
   is an outlier (braking while a drive force is still reported) are trimmed and the fit redone.
 
 The vehicle's lateral baseline (a linear single-track KF) is
-:func:`vehicle_estimation.tools.stanford.baseline_linear_kf`.
+:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import math
 import numpy as np
 from scipy import signal
 
-from ..vehicle import VehicleParams
+from vehicle_estimation.contract.vehicle import VehicleParams
 
 #: Corner of the kinematic grade's low-pass [Hz]: the accelerometer's vibration and the
 #: differentiated speed's quantisation are far above it, a road's grade changes below it.

@@ -38,7 +38,7 @@ Sensors (all stamps start at 0 s):
   speeds [rad/s]; ``steering_wheel`` position = δ × ``STEERING_RATIO`` (16.0, a guess for the
   E90 320i's standard steering; the model knows only δ). Efforts NaN (not modelled).
 * ``gnss/fix`` 10 Hz: ENU position around ``ORIGIN`` to WGS84 by
-  :class:`vehicle_estimation.core.geodesy.LocalTangentPlane`, 0.5 m white noise (east, north),
+  :class:`vehicle_estimation.estimators.common.geodesy.LocalTangentPlane`, 0.5 m white noise (east, north),
   1.0 m up.
 * Ground truth 100 Hz: ``ground_truth/vehicle_state`` (vx, vy, r in base_link at the model's
   reference point), ``ground_truth/sideslip`` = atan(vy/vx), ``ground_truth/odometry``,
@@ -58,11 +58,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import topics as T
-from ..core.geodesy import LocalTangentPlane
-from ..sim import bag as simbag
-from ..sim.noise import band_limited_noise
-from .vehicle_yaml import format_vehicle_yaml
+from vehicle_estimation.contract import topics as T
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.sim import bag as simbag
+from vehicle_estimation.sim.noise import band_limited_noise
+from vehicle_estimation.validation.vehicle_yaml import format_vehicle_yaml
 
 G_MODEL = 9.81                   # the model's gravity constant [m/s^2]
 SIM_RATE_HZ = 1000

@@ -65,7 +65,7 @@ the walk; ``veh.history.*`` unless said otherwise; stamps start at 0 s):
 * ``gnss/fix`` 10 Hz: a straight road heading ``HEADING_DEG`` (ENU yaw) from ``ORIGIN``; the
   horizontal distance integrates ``speed_ach cos(slope)``, the altitude ``speed_ach
   sin(slope)`` (trapezoid); 0.5 m white noise east/north, 1.0 m up; WGS84 by
-  :class:`vehicle_estimation.core.geodesy.LocalTangentPlane`.
+  :class:`vehicle_estimation.estimators.common.geodesy.LocalTangentPlane`.
 
 Variants (:func:`write_drive`): ``gnss=False`` drops ``gnss/fix``, ``wheels=False`` drops
 ``vehicle/joint_states`` (wheel speeds and brake torques); the same realisation otherwise.
@@ -86,8 +86,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import road_drive as rd
-from .vehicle_yaml import format_vehicle_yaml
+from vehicle_estimation.validation import road_drive as rd
+from vehicle_estimation.validation.vehicle_yaml import format_vehicle_yaml
 
 FASTSIM_VERSION = "3.1.0"
 VEHICLE_RESOURCE = "2012_Ford_Fusion.yaml"

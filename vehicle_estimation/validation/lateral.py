@@ -3,12 +3,12 @@
 :func:`compare_state_filters` reads a bag of :mod:`.commonroad` (or any bag with the topic
 contract and ground truth), and runs, without ROS:
 
-* the baseline :func:`vehicle_estimation.tools.stanford.baseline_linear_kf` (its ``cf``/``cr``
-  are per *axle*: 2 x the per-tyre ``VehicleParams`` values, as ``tools.stanford`` passes them),
+* the baseline :func:`vehicle_estimation.validation.stanford.baseline_linear_kf` (its ``cf``/``cr``
+  are per *axle*: 2 x the per-tyre ``VehicleParams`` values, as ``validation.stanford`` passes them),
   fed with the IMU ay and yaw rate (averaged to 100 Hz, as the state node does), the road-wheel
   angle (steering wheel / ``steering_ratio``) and the CAN speed (zero-order hold);
 * ``VehicleStateCKF``, ``VehicleStateVBACKF`` and ``VehicleStateAOUKF`` fed as
-  ``nodes/state_node.py`` feeds them (mirrored here, that file is not imported: it needs rclpy):
+  ``ros/state_node.py`` feeds them (mirrored here, that file is not imported: it needs rclpy):
   the node's default tunings (``p0_diag`` = paper P0, ``q_diag`` = paper Q x 0.01 s, ``r_diag``
   = paper R, ``initial_vx`` 0 and ``init_vx_from_wheel_speeds`` true as in
   ``params/estimation.yaml``, default ``vbackf.*``/``aoukf.*``, no GA-BPNN weights for this
@@ -41,18 +41,19 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import topics as T
-from ..core.aoukf import AOUKFConfig, VehicleStateAOUKF
-from ..core.ckf import VehicleStateCKF, VehicleStateConfig
-from ..core.vbackf import VBConfig, VehicleStateVBACKF
-from ..core.vehicle_model import VehicleInputs
-from ..tools import metrics
-from ..tools.stanford import baseline_linear_kf
-from ..vehicle import VehicleParams, load_vehicle_params
+from vehicle_estimation.contract import topics as T
+from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
+from vehicle_estimation.estimators.state.ckf import VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.estimators.state.vbackf import VBConfig, VehicleStateVBACKF
+from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
+from vehicle_estimation.evaluation import metrics
+from vehicle_estimation.validation.stanford import baseline_linear_kf
+from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
+from vehicle_estimation.paths import params_file
+from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S
 
-PARAMS_FILE = Path(__file__).resolve().parents[2] / "params" / "commonroad_bmw320i.yaml"
+PARAMS_FILE = params_file("commonroad_bmw320i")
 FILTER_RATE_HZ = 100.0
-STAMP_TOLERANCE_S = 1e-6          # nodes.base
 STALE_INPUT_S = 0.5               # state node stale_input_s
 WHEEL_WAIT_S = 1.0                # state node
 GRADE_CORRELATION_S = 5.0         # state node
@@ -92,7 +93,7 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
                 q = msg.pose.pose.orientation
                 n = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
                 # R[2, 1] = sin(roll) cos(pitch): the share of gravity on the body y axis, as
-                # nodes.conversions.lateral_gravity_entry reads it off the fusion's Odometry
+                # ros.conversions.lateral_gravity_entry reads it off the fusion's Odometry
                 rows[topic].append((t, 2.0 * (q.y * q.z + q.w * q.x) / n if n > 0.5 else math.nan))
             elif topic == T.SPEED:
                 rows[topic].append((t, msg.twist.twist.linear.x, msg.twist.covariance[0]))

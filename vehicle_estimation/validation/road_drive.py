@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import topics as T
-from ..core.geodesy import LocalTangentPlane
-from ..sim import bag as simbag
+from vehicle_estimation.contract import topics as T
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.sim import bag as simbag
 
 #: Truth keys a bag's ground-truth topics are written from.
 TRUTH_KEYS = ("t", "vx", "vy", "yaw_rate", "sideslip", "roll", "pitch", "yaw", "x", "y", "z", "wx", "wy", "wz",

@@ -12,7 +12,7 @@ Cases (``--cases``; default: all that can be made here):
 * ``commonroad_<manoeuvre>`` and ``commonroad_<manoeuvre>_vib4``: lane change, slalom and step
   steer of the CommonRoad multi-body BMW 320i (:mod:`.commonroad`), clean and with 4 m/s² of
   10-60 Hz IMU vibration. Lateral: sideslip and vy against the linear single-track KF
-  (:func:`vehicle_estimation.tools.stanford.baseline_linear_kf`, given the vehicle file's
+  (:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`, given the vehicle file's
   cornering stiffnesses and the CAN speed).
 * ``fastsim_hills`` and its variants without GNSS and without wheel speeds, when FASTSim is
   installed (:mod:`.fastsim_drive`). Longitudinal: slope against the causal kinematic grade,
@@ -42,11 +42,11 @@ from typing import Any
 
 import numpy as np
 
-from .. import topics as T
-from ..paths import params_file
-from ..tools import metrics
-from ..vehicle import VehicleParams, load_vehicle_params
-from . import baselines
+from vehicle_estimation.contract import topics as T
+from vehicle_estimation.paths import params_file
+from vehicle_estimation.evaluation import metrics
+from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
+from vehicle_estimation.validation import baselines
 
 DEFAULT_OUT = Path("out") / "validate"
 #: Metrics start after this much of each drive: filters and baselines alike start from nothing.
@@ -68,7 +68,7 @@ class Case:
 
 # ------------------------------------------------------------------------------------ cases
 def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
-    from . import commonroad
+    from vehicle_estimation.validation import commonroad
 
     manoeuvres = ["dlc"] if quick else list(commonroad.MANOEUVRES)
     duration = 14.0 if quick else None
@@ -90,7 +90,7 @@ def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
 
 def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
     try:
-        from . import fastsim_drive
+        from vehicle_estimation.validation import fastsim_drive
     except ImportError:
         return []
     try:
@@ -104,13 +104,13 @@ def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
 
 
 def _sim_cases(root: Path, *, quick: bool) -> list[Case]:
-    from ..sim import scenario_by_name, simulate, write_bag
+    from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
     bag = root / "sim" / "sim_hills"
     if not bag.exists():
         bag.parent.mkdir(parents=True, exist_ok=True)
         if quick:   # the first 35 s of the short drive: the mass has updated by then
-            from ..tools.bagtools import rewrite_bag
+            from vehicle_estimation.io.bagtools import rewrite_bag
             full = write_bag(simulate(scenario_by_name("short")), root / "sim" / "short_drive")
             rewrite_bag(full, bag, duration_s=35.0)
         else:
@@ -149,14 +149,14 @@ def _row(case: Case, quantity: str, unit: str, estimator: str, baseline: str,
 
 
 def _read_estimates(bag: Path) -> dict:
-    from ..tools.report import read_bag
+    from vehicle_estimation.evaluation.report import read_bag
     return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.GT_MASS, T.GT_ROAD_SLOPE,
                           T.GT_SIDESLIP, T.GT_VEHICLE_STATE])
 
 
 def consistency_rows(case: Case, est: dict) -> list[dict]:
-    """Per estimate with a variance: its errors against its own sigma (tools.metrics.consistency)."""
-    from ..tools.report import consistency_group
+    """Per estimate with a variance: its errors against its own sigma (evaluation.metrics.consistency)."""
+    from vehicle_estimation.evaluation.report import consistency_group
 
     checked, _ = consistency_group(est, WARMUP_S)
     return [{"case": case.name, "independent": case.independent, "quantity": quantity, **values}
@@ -164,7 +164,7 @@ def consistency_rows(case: Case, est: dict) -> list[dict]:
 
 
 def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str) -> tuple[list, dict]:
-    from . import lateral
+    from vehicle_estimation.validation import lateral
 
     drive = lateral.read_drive(case.bag)
     truth = drive["truth"]
@@ -271,7 +271,7 @@ def _shipped_methods() -> dict[str, str]:
 def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases: Sequence[str] | None = None,
         quick: bool = False, progress: bool = True) -> dict:
     """Make the cases, replay each, score it with its baseline; returns ``validation.json``'s content."""
-    from ..tools.replay import ReplayError, replay
+    from vehicle_estimation.launcher.replay import ReplayError, replay
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -365,7 +365,7 @@ def format_table(result: dict) -> str:
 def format_consistency(rows: list[dict]) -> str:
     """Honesty of the published variances: errors within 1/2/3 sigma, NEES, and the same over
     the samples flagged converged."""
-    from ..tools.report import format_share as pct
+    from vehicle_estimation.evaluation.report import format_share as pct
 
     def num(x):
         return "n/a" if x is None or not math.isfinite(x) else f"{x:.2f}"

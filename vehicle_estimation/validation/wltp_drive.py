@@ -111,8 +111,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import road_drive as rd
-from .vehicle_yaml import format_vehicle_yaml
+from vehicle_estimation.validation import road_drive as rd
+from vehicle_estimation.validation.vehicle_yaml import format_vehicle_yaml
 
 WLTP_VERSION = "0.1.2a0"
 VEHICLE_NAME = "wltp_midsize_petrol"

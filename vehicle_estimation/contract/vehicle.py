@@ -1,0 +1,253 @@
+"""Vehicle parameters shared by the simulator and every estimator.
+
+A vehicle is described once, in the ``vehicle.*`` section of a ROS 2 parameters file
+(``params/<vehicle>.yaml``), and read here into a frozen :class:`VehicleParams`.
+All quantities are SI (REP-103): kg, m, s, rad, N, N·m, rad/s.
+
+Sources of the defaults shipped in ``params/``:
+
+* ``sedan_d_class.yaml``: the D-class sedan of Chen et al. 2021 (paper 004), Table 1.
+* ``audi_a4.yaml``: the 2018 Audi A4 of Jensen et al. 2022 (paper 003), Table 1.
+* ``heavy_truck.yaml``: the heavy truck of Zhang et al. 2023 (paper 000), Table 1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+GRAVITY = 9.80665  # m/s², standard gravity
+
+
+def _ranged(default: float, low: float, high: float, doc: str) -> Any:
+    """A vehicle field with its plausible range and its one-line documentation: the one place
+    they are written. ``validate()``, the nodes' parameter descriptors and the README's
+    parameter reference all read them. Ranges are wide enough for a city car and a 60 t road
+    train, narrow enough to stop a typo (mass in tonnes, radius in mm) at start-up."""
+    return dataclasses.field(default=default, metadata={"range": (low, high), "doc": doc})
+
+
+def dataclass_from_mapping(cls: Any, values: Mapping[str, Any], unknown: str) -> Any:
+    """``cls(**values)`` from a flat mapping (ROS parameters, YAML), each value coerced to the
+    type of its field's default: float, int, str, a bool only as a bool, a tuple or list of
+    floats (a list may be None for empty). An unknown key raises ``ValueError(unknown)``,
+    formatted with ``key``; the instance is validated before it is returned."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in values.items():
+        field = fields.get(key)
+        if field is None:
+            raise ValueError(unknown.format(key=key))
+        default: Any = None
+        if field.default is not dataclasses.MISSING:
+            default = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            default = field.default_factory()
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f"{key} must be a bool, got {value!r}")
+        elif isinstance(default, int):
+            value = int(value)
+        elif isinstance(default, str):
+            value = str(value)
+        elif isinstance(default, tuple):
+            value = tuple(float(v) for v in value)
+        elif isinstance(default, list):
+            value = [float(v) for v in (value or [])]
+        else:
+            value = float(value)
+        kwargs[key] = value
+    instance = cls(**kwargs)
+    instance.validate()
+    return instance
+
+
+DRIVEN_AXLES = ("front", "rear", "all")
+#: Wheel indices, in the contract's order fl, fr, rl, rr, of the undriven axle.
+UNDRIVEN_WHEELS = {"front": (2, 3), "rear": (0, 1), "all": (0, 1, 2, 3)}
+
+
+@dataclasses.dataclass(frozen=True)
+class VehicleParams:
+    """Physical description of one vehicle (all SI).
+
+    Geometry follows paper 004 Fig. 2: ``lf``/``lr`` are the distances from the centre of
+    gravity to the front/rear axle, ``track_front``/``track_rear`` the track widths
+    (b_F, b_R), ``cg_height`` the CoG height h.
+    """
+
+    name: str = "vehicle"
+    mass: float = _ranged(
+        1530.0, 100.0, 100000.0, "Nominal gross mass [kg]; estimators use it only as a prior")
+    curb_mass: float = _ranged(1530.0, 100.0, 100000.0, "Mass without payload [kg]")
+    lf: float = _ranged(1.139, 0.2, 10.0, "CoG to front axle [m]")
+    lr: float = _ranged(1.637, 0.2, 10.0, "CoG to rear axle [m]")
+    track_front: float = _ranged(1.55, 0.5, 4.0, "Front track width b_F [m]")
+    track_rear: float = _ranged(1.55, 0.5, 4.0, "Rear track width b_R [m]")
+    cg_height: float = _ranged(0.519, 0.1, 4.0, "CoG height h [m]")
+    yaw_inertia: float = _ranged(4607.47, 100.0, 2000000.0, "Yaw moment of inertia I_z [kg m^2]")
+    wheel_radius: float = _ranged(0.325, 0.1, 1.5, "Effective rolling radius [m]")
+    wheel_inertia: float = _ranged(
+        4.0, 0.0, 1000.0, "Rotational inertia of all wheels and driveshafts I_w [kg m^2]")
+    engine_inertia: float = _ranged(0.2, 0.0, 50.0, "Engine-side rotational inertia I_e [kg m^2]")
+    frontal_area: float = _ranged(2.4, 0.5, 20.0, "Frontal area A [m^2]")
+    drag_coefficient: float = _ranged(0.3, 0.05, 2.0, "Aerodynamic drag coefficient C_d")
+    air_density: float = _ranged(1.206, 0.5, 2.0, "Air density [kg/m^3]")
+    rolling_resistance: float = _ranged(0.013, 0.0, 0.1, "Rolling resistance coefficient C_r")
+    driveline_efficiency: float = _ranged(0.89, 0.3, 1.0, "Driveline efficiency eta")
+    final_drive: float = _ranged(4.1, 0.5, 20.0, "Final drive ratio i_d")
+    gear_ratios: tuple[float, ...] = (3.5, 2.1, 1.4, 1.0, 0.8)  # i_t,j, first gear first
+    steering_ratio: float = _ranged(19.0, 1.0, 40.0, "Steering-wheel to road-wheel ratio")
+    driven_axle: str = "front"           # "front", "rear" or "all"
+    # Engine (for the simulator's torque map and the OBD-II load of SAE J1979 PID 04)
+    engine_idle_speed: float = _ranged(850.0 * math.pi / 30.0, 10.0, 300.0, "Engine idle speed [rad/s]")
+    engine_max_speed: float = _ranged(6200.0 * math.pi / 30.0, 50.0, 2000.0, "Engine maximum speed [rad/s]")
+    engine_max_torque: float = _ranged(320.0, 10.0, 10000.0, "Engine maximum torque [N m]")
+    engine_max_power: float = _ranged(142e3, 1000.0, 2000000.0, "Engine maximum power [W]")
+    engine_drag_torque: float = _ranged(25.0, 0.0, 1000.0, "Engine drag torque at zero load [N m]")
+    max_brake_torque: float = _ranged(3000.0, 100.0, 100000.0, "Maximum brake torque per wheel [N m]")
+    brake_front_share: float = _ranged(0.65, 0.0, 1.0, "Share of brake torque on the front axle")
+    # Tyres (Dugoff model, paper 004 Eqs. 5-9; per tyre)
+    cornering_stiffness_front: float = _ranged(
+        60000.0, 1000.0, 2000000.0, "Cornering stiffness per front tyre [N/rad]")
+    cornering_stiffness_rear: float = _ranged(
+        55000.0, 1000.0, 2000000.0, "Cornering stiffness per rear tyre [N/rad]")
+    longitudinal_stiffness: float = _ranged(
+        80000.0, 1000.0, 5000000.0, "Longitudinal slip stiffness per tyre [N]")
+    # Load sensitivity of those two stiffnesses: C(F_z) = C (F_z / F_z0)^n with F_z0 the static
+    # load of the tyre at ``mass``. 0 = constant (paper 004 Eq. 9, our simulator); 1 = proportional
+    # to the load (a Magic-Formula tyre with K = p_k1 F_z, as commonroad-vehicle-models codes it);
+    # real tyres lie in between (degressive).
+    tyre_load_exponent: float = _ranged(
+        0.0, 0.0, 2.0, "Load sensitivity n of the tyre stiffnesses, C (F_z/F_z0)^n (0 = constant, paper 004)")
+    road_friction: float = _ranged(0.9, 0.05, 1.5, "Tyre-road friction coefficient mu")
+    # Magic-Formula lateral tyre (paper 002 Sec. 2.2); used by the 3-DOF UKF model
+    magic_b: float = _ranged(10.0, 0.1, 50.0, "Magic Formula stiffness factor B")
+    magic_c: float = _ranged(1.3, 0.1, 5.0, "Magic Formula shape factor C")
+    magic_d: float = _ranged(1.0, 0.1, 5.0, "Magic Formula peak factor D (times mu F_z)")
+    magic_e: float = _ranged(0.97, -10.0, 1.0, "Magic Formula curvature factor E")
+    # Body pitch on the suspension per longitudinal acceleration (squat/dive), positive nose up
+    # when accelerating: the IMU sees it, the road does not have it.
+    pitch_gain: float = _ranged(
+        0.002, 0.0, 0.05, "Body pitch per longitudinal acceleration, nose up when accelerating [rad per m/s^2]")
+    pitch_time_constant: float = _ranged(0.15, 0.0, 5.0, "Time constant of the suspension pitch response [s]")
+    gravity: float = _ranged(GRAVITY, 9.7, 9.9, "Gravitational acceleration [m/s^2]")
+
+
+    @property
+    def wheelbase(self) -> float:
+        return self.lf + self.lr
+
+    @property
+    def drag_area(self) -> float:
+        """C_d·A_0, the product the mass filters use (paper 003 Eq. 1, C_a)."""
+        return self.drag_coefficient * self.frontal_area
+
+    def effective_gearing(self, gear: int) -> float:
+        """G = i_t,j·i_d / r of paper 003 Eq. 1 for gear ``gear`` (1-based) [1/m]."""
+        if not 1 <= gear <= len(self.gear_ratios):
+            raise ValueError(f"gear {gear} outside 1..{len(self.gear_ratios)}")
+        return self.gear_ratios[gear - 1] * self.final_drive / self.wheel_radius
+
+    def with_mass(self, mass: float) -> "VehicleParams":
+        return dataclasses.replace(self, mass=float(mass))
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first parameter that is not physical."""
+        for field in dataclasses.fields(self):
+            bounds = field.metadata.get("range")
+            if bounds is None:
+                continue
+            value = getattr(self, field.name)
+            low, high = bounds
+            if not (math.isfinite(value) and low <= value <= high):
+                raise ValueError(f"vehicle.{field.name} must be in [{low:g}, {high:g}], got {value!r}")
+        if not self.gear_ratios or any(not (math.isfinite(g) and g > 0) for g in self.gear_ratios):
+            raise ValueError(f"vehicle.gear_ratios must be a non-empty list of positive ratios, got {self.gear_ratios!r}")
+        if self.driven_axle not in DRIVEN_AXLES:
+            raise ValueError(f"vehicle.driven_axle must be 'front', 'rear' or 'all', got {self.driven_axle!r}")
+        if self.engine_idle_speed >= self.engine_max_speed:
+            raise ValueError("vehicle.engine_idle_speed must be below vehicle.engine_max_speed")
+
+    @classmethod
+    def field_range(cls, name: str) -> tuple[float, float, str] | None:
+        """(low, high, documentation) of a ranged field, None for the others."""
+        field = {f.name: f for f in dataclasses.fields(cls)}[name]
+        if "range" not in field.metadata:
+            return None
+        low, high = field.metadata["range"]
+        return low, high, field.metadata["doc"]
+
+    @property
+    def undriven_wheels(self) -> tuple[int, ...]:
+        """Indices (fl, fr, rl, rr order) of the wheels no drive torque reaches: their speed is
+        the vehicle's without drive slip. An all-wheel drive has none; all four are returned,
+        since they slip alike."""
+        return UNDRIVEN_WHEELS[self.driven_axle]
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        return [f.name for f in dataclasses.fields(cls)]
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "VehicleParams":
+        """Build from a flat mapping of field name to value; unknown keys are an error."""
+        return dataclass_from_mapping(cls, values, "unknown vehicle parameter 'vehicle.{key}'")
+
+    def as_mapping(self) -> dict[str, Any]:
+        out = dataclasses.asdict(self)
+        out["gear_ratios"] = list(self.gear_ratios)
+        return out
+
+
+def read_ros_params_file(path: str | Path) -> dict[str, Any]:
+    """Return the merged ``ros__parameters`` of a ROS 2 params file, nested as written.
+
+    Sections for ``/**`` come first and node-specific sections are merged over them, the
+    same precedence rcl applies. Node names are ignored here: the simulator and the tools
+    only need the shared ``vehicle`` section.
+    """
+    with open(path, "r", encoding="utf-8") as handle:
+        document = yaml.safe_load(handle) or {}
+    return merge_ros_parameters(document)
+
+
+def merge_ros_parameters(document: Mapping[str, Any], node: str | None = None) -> dict[str, Any]:
+    """The ``ros__parameters`` of a parsed params file that apply to ``node``, nested as written.
+
+    ``/**`` first, then the node's own section (a key whose last name is ``node``: ``mass``,
+    ``/car1/mass``) over it, as rcl does; ``node=None`` merges every section.
+    """
+    merged: dict[str, Any] = {}
+    keys = sorted(document, key=lambda k: 0 if k in ("/**", "**") else 1)
+    for key in keys:
+        shared = key in ("/**", "**")
+        if not (shared or node is None or str(key).strip("/").split("/")[-1] == node):
+            continue
+        section = document[key]
+        if isinstance(section, dict) and "ros__parameters" in section:
+            _deep_merge(merged, section["ros__parameters"] or {})
+    return merged
+
+
+def _deep_merge(into: dict[str, Any], update: Mapping[str, Any]) -> None:
+    for key, value in update.items():
+        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+            _deep_merge(into[key], value)
+        elif isinstance(value, Mapping):
+            into[key] = {}
+            _deep_merge(into[key], value)
+        else:
+            into[key] = value
+
+
+def load_vehicle_params(path: str | Path) -> VehicleParams:
+    """Load the ``vehicle`` section of a ROS 2 params file."""
+    section = read_ros_params_file(path).get("vehicle")
+    if not isinstance(section, Mapping):
+        raise ValueError(f"{path}: no 'vehicle' section under ros__parameters")
+    return VehicleParams.from_mapping(section)

@@ -1,0 +1,1 @@
+"""Estimator cores: numpy/scipy/torch only, no ROS import; one module per method, testable on arrays."""

@@ -1,0 +1,1 @@
+"""Maths every estimator kind shares: rotations, geodesy."""

@@ -1,0 +1,668 @@
+"""Transformer-aided adaptive EKF for the vehicle mass: Zhang et al. 2023 (paper 000),
+Secs. 2.3-2.4, Eqs. (16)-(36), Algorithm 1.
+
+NumPy only, no ROS; the transformer of Sec. 2.2 lives in
+:mod:`vehicle_estimation.estimators.mass.mass_transformer` and is imported lazily, only when a model is
+loaded, so the filter itself (and the "EKF alone" baseline) needs no torch.
+
+Equation map (paper 000):
+
+* Eqs. (16)-(19)  confidence level tau: a Gaussian N(mu, Sigma) fitted to
+  x' = [F_t, a_x, v_x, alpha] of the training set; tau_k = p(x'_k) / p_max
+  = exp(-1/2 (x'_k - mu)^T Sigma^-1 (x'_k - mu)) (:func:`confidence_level`,
+  :func:`gaussian_density`, :func:`peak_density`, :func:`fit_confidence_gaussian`).
+* Eqs. (6)-(14)  longitudinal dynamics, rearranged for the acceleration (:func:`longitudinal_accel`)::
+
+      delta m a_x = F_t - 1/2 rho C_d A v^2 - m g (f cos(alpha) + sin(alpha))
+
+* Eqs. (20)-(28)  EKF: prediction x^- = g(x, u), P^- = A P A^T + Q, gain, update (Joseph form
+  here, algebraically Eq. 26 but it keeps P symmetric and positive with R -> 0).
+* Eqs. (29)-(30)  state x = [v_x, 1/m], transition v_k = v_{k-1} + a_x dT, (1/m)_k = (1/m)_{k-1}
+  (:func:`transition`).
+* Eqs. (32)-(34)  Jacobian A (:func:`transition_jacobian`).
+* Eqs. (31), (35)-(36)  observation y~ = [v_x, 1/m_nn], H = I; R~ = diag(R_v, (1-tau)/tau R_nn)
+  (Algorithm 1; :class:`AdaptiveEKF`).
+
+Units and the rotating-mass factor: SI throughout (REP-103); the paper's Eqs. (33)-(34) carry
+v in km/h (the 3.6, 3/25 and 12.96 factors). delta is the rotating mass conversion factor
+1 + J/m with J = I_w/r^2 the rotating inertia downstream of the measured drive force; since it
+depends on the state 1/m we differentiate through it. With J = 0 (delta = 1) the Jacobian is
+exactly Eqs. (33)-(34) in SI units (``test_ta_aekf.py`` checks both, and against finite
+differences)::
+
+      A11 = 1 - dT/(delta m) (P_e / v^2 + rho C_d A v)        (Eq. 33; F_t = P_e / v by Eq. 13)
+      A12 = dT/delta (P_e / v - 1/2 rho C_d A v^2)            (Eq. 34)
+
+The driving force F_t: the paper uses Eq. (13), F_t = eta T_tq n pi / (30 v) (engine power over
+speed). Here, first available: the driveline force reported on CAN (dF_t/dv = 0), engine torque
+x eta x i_g i_0 / r with a known gear (dF_t/dv = 0), or Eq. (13) from engine torque and speed
+(dF_t/dv = -F_t/v). Engineering addition (not in the paper, whose drives have no braking): the
+brake force T_b / r is subtracted from F_t, so braking samples obey the same model.
+
+The transformer runs every ``inference_period_steps`` samples on a window of block means of
+the Eq. (15) features (see :class:`TaAekfConfig`); its output 1/m_nn enters only at the
+samples where it is fresh, so one network output is used once.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from vehicle_estimation.estimators.mass.mass_rls import _finite
+from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
+from vehicle_estimation.paths import MODELS_DIR
+
+if TYPE_CHECKING:   # torch only when a model is loaded
+    from vehicle_estimation.estimators.mass.mass_transformer import MassModel
+
+#: Rejection reasons counted in :attr:`TaAekfMassEstimator.rejected`.
+REJECT_REASONS = (
+    "nan",        # t, vx or slope not finite
+    "time",       # t not increasing
+    "absurd",     # |vx|, |ax|, |slope| or a force outside physical bounds
+    "speed",      # vx < min_speed: Eq. (14) with rolling resistance needs a rolling vehicle
+    "no_force",   # no drive force, no engine torque with gear, no engine torque + speed
+    "gap",        # time step above max_step_s: the velocity state restarts from the measurement
+    "numeric",    # an update would make the state or covariance non-finite: skipped
+)
+
+#: Names of the tau features x' of Eq. (16): F_t [N], a_x [m/s^2], v_x [m/s], alpha [rad].
+TAU_FEATURES = ("F_t", "a_x", "v_x", "alpha")
+#: Names of the network input features of Eq. (15): F_t [N], F_w [N], delta a_x [m/s^2],
+#: (f cos(alpha) + sin(alpha)) g [m/s^2], v_x [km/h] (the paper's unit).
+NN_FEATURES = ("F_t", "F_w", "delta_a_x", "g_f_cos_plus_sin", "v_x_kmh")
+
+DEFAULT_MODEL_STEM = MODELS_DIR / "mass_transformer"
+
+
+# --------------------------------------------------------------------- tau, Eqs. (16)-(19)
+def fit_confidence_gaussian(samples: np.ndarray, ridge: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """mu and Sigma of Eq. (16) from training samples x' (N, n): the sample mean and the
+    (ddof = 1) covariance, with ``ridge`` x its diagonal added so that it is invertible."""
+    x = np.asarray(samples, dtype=float)
+    if x.ndim != 2 or x.shape[0] < x.shape[1] + 1:
+        raise ValueError(f"need (N, n) samples with N > n, got shape {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("confidence samples must be finite")
+    mu = x.mean(axis=0)
+    cov = np.cov(x, rowvar=False, ddof=1)
+    cov = cov + ridge * np.diag(np.diag(cov))
+    np.linalg.cholesky(cov)          # raises LinAlgError when not positive definite
+    return mu, cov
+
+
+def _mahalanobis_sq(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    d = np.asarray(x, dtype=float) - np.asarray(mean, dtype=float)
+    chol = np.linalg.cholesky(np.asarray(cov, dtype=float))
+    z = np.linalg.solve(chol, d[..., None])[..., 0] if d.ndim > 1 else np.linalg.solve(chol, d)
+    return np.sum(z * z, axis=-1)
+
+
+def gaussian_density(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """p(x'; mu, Sigma), Eqs. (16)/(18); x may be (n,) or (..., n)."""
+    return peak_density(cov) * np.exp(-0.5 * _mahalanobis_sq(x, mean, cov))
+
+
+def peak_density(cov: np.ndarray) -> float:
+    """p_max = 1 / ((2 pi)^(n/2) |Sigma|^(1/2)), Eq. (17), the density at mu."""
+    c = np.asarray(cov, dtype=float)
+    n = c.shape[0]
+    sign, logdet = np.linalg.slogdet(c)
+    if sign <= 0:
+        raise ValueError("covariance must be positive definite")
+    return float(np.exp(-0.5 * n * math.log(2.0 * math.pi) - 0.5 * logdet))
+
+
+def confidence_level(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """tau = p(x') / p_max = exp(-1/2 (x' - mu)^T Sigma^-1 (x' - mu)), Eq. (19), in (0, 1].
+
+    Computed from the Mahalanobis distance directly (not as a ratio of densities, whose
+    factors cancel), so it does not underflow before the exponential itself does."""
+    return np.exp(-0.5 * _mahalanobis_sq(x, mean, cov))
+
+
+# --------------------------------------------------------------------- dynamics, Eqs. (14), (30)-(34)
+@dataclasses.dataclass(frozen=True)
+class DriveInput:
+    """Control input u of Eq. (30) for one step.
+
+    ``force``: F_t [N], the net force the driveline (minus the brakes) applies at the wheels
+    at the current speed; ``dforce_dv``: its derivative with respect to v [N s/m] (0 for a
+    measured force, -F/v for Eq. 13); ``slope`` alpha [rad]."""
+
+    force: float
+    dforce_dv: float
+    slope: float
+
+
+def longitudinal_accel(v: float, inv_mass: float, u: DriveInput, params: VehicleParams) -> float:
+    """a_x from Eq. (14) with delta = 1 + J/m (J = I_w / r^2)::
+
+        a_x = (1/m (F_t - F_w) - g (f cos(alpha) + sin(alpha))) / (1 + J/m)
+    """
+    p = params
+    drag = 0.5 * p.air_density * p.drag_area * v * abs(v)                     # F_w, Eq. (9)
+    grade = p.gravity * (p.rolling_resistance * math.cos(u.slope) + math.sin(u.slope))
+    j = p.wheel_inertia / p.wheel_radius ** 2
+    return (inv_mass * (u.force - drag) - grade) / (1.0 + j * inv_mass)
+
+
+def transition(x: np.ndarray, u: DriveInput, dt: float, params: VehicleParams) -> np.ndarray:
+    """g(x, u) of Eq. (30): [v + a_x dT, 1/m]."""
+    v, inv_mass = float(x[0]), float(x[1])
+    return np.array([v + longitudinal_accel(v, inv_mass, u, params) * dt, inv_mass])
+
+
+def transition_jacobian(x: np.ndarray, u: DriveInput, dt: float, params: VehicleParams) -> np.ndarray:
+    """A = dg/dx of Eqs. (32)-(34), analytic.
+
+    With theta = 1/m, D = 1 + J theta and N = theta (F_t - F_w) - g (f cos + sin)::
+
+        A11 = 1 + dT theta (dF_t/dv - rho C_d A |v|) / D                       (Eq. 33)
+        A12 = dT ((F_t - F_w) D - J N) / D^2 = dT ((F_t - F_w) + J g (f cos + sin)) / D^2   (Eq. 34)
+
+    For J = 0 and F_t = P_e/v (Eq. 13, dF_t/dv = -F_t/v) these are Eqs. (33)-(34) in SI.
+    """
+    p = params
+    v, theta = float(x[0]), float(x[1])
+    j = p.wheel_inertia / p.wheel_radius ** 2
+    rho_cda = p.air_density * p.drag_area
+    drag = 0.5 * rho_cda * v * abs(v)
+    grade = p.gravity * (p.rolling_resistance * math.cos(u.slope) + math.sin(u.slope))
+    d = 1.0 + j * theta
+    a11 = 1.0 + dt * theta * (u.dforce_dv - rho_cda * abs(v)) / d
+    a12 = dt * ((u.force - drag) + j * grade) / (d * d)
+    return np.array([[a11, a12], [0.0, 1.0]])
+
+
+class AdaptiveEKF:
+    """The EKF of Eqs. (20)-(28) on x = [v_x, 1/m] with the expanded observation of
+    Algorithm 1: y~ = [v_x, 1/m_nn], R~ = diag(R_v, (1 - tau)/tau R_nn).
+
+    ``update`` takes the network row only when given; tau -> 0 gives an infinite variance,
+    i.e. that row is dropped (the limit of the paper's law, computed without inf/NaN)."""
+
+    def __init__(self, x0: np.ndarray, p0: np.ndarray) -> None:
+        self.x = np.array(x0, dtype=float).reshape(2)
+        self.P = np.array(p0, dtype=float).reshape(2, 2)
+
+    def predict(self, u: DriveInput, dt: float, q: np.ndarray, params: VehicleParams) -> None:
+        """Eqs. (22)-(23): x^- = g(x, u), P^- = A P A^T + Q (A at the prior x)."""
+        a = transition_jacobian(self.x, u, dt, params)
+        self.x = transition(self.x, u, dt, params)
+        self.P = a @ self.P @ a.T + q
+        self.P = 0.5 * (self.P + self.P.T)
+
+    def update(self, v_meas: float, r_v: float, inv_mass_nn: float | None = None,
+               r_nn: float | None = None, tau: float | None = None, gate_sigma: float = 0.0) -> bool:
+        """Eqs. (24)-(26) with Algorithm 1's adaptive R~. Returns whether the network row was
+        used. ``gate_sigma`` > 0 (not in the paper) drops the network row when its innovation
+        exceeds that many standard deviations of its innovation covariance P_22 + R~_22."""
+        rows: list[int] = [0]
+        y = [v_meas]
+        r = [r_v]
+        used = False
+        if inv_mass_nn is not None and r_nn is not None and tau is not None:
+            weight = (1.0 - tau) / tau if tau > 0.0 else math.inf       # (1 - tau_k)/tau_k
+            if math.isfinite(weight):
+                r_scaled = weight * r_nn
+                innovation_var = self.P[1, 1] + r_scaled
+                gated = gate_sigma > 0.0 and \
+                    (inv_mass_nn - self.x[1]) ** 2 > gate_sigma ** 2 * innovation_var
+                if not gated:
+                    rows.append(1)
+                    y.append(inv_mass_nn)
+                    r.append(r_scaled)
+                    used = True
+        h = np.eye(2)[rows]                                               # H of Eq. (28)
+        rr = np.diag(r)
+        s = h @ self.P @ h.T + rr
+        k = np.linalg.solve(s.T, (self.P @ h.T).T).T                      # Eq. (24)
+        innovation = np.asarray(y) - h @ self.x
+        self.x = self.x + k @ innovation                                  # Eq. (25)
+        i_kh = np.eye(2) - k @ h
+        self.P = i_kh @ self.P @ i_kh.T + k @ rr @ k.T                    # Eq. (26), Joseph form
+        self.P = 0.5 * (self.P + self.P.T)
+        return used
+
+
+
+
+# --------------------------------------------------------------------- features, Eq. (15)
+def eq15_features(force: float, v: float, ax: float, slope: float, params: VehicleParams,
+                  delta: float) -> tuple[float, float, float, float, float]:
+    """A_input of Eq. (15) for one sample: [F_t, F_w, delta a_x, (f cos + sin) g, v_x (km/h)]."""
+    p = params
+    drag = 0.5 * p.air_density * p.drag_area * v * abs(v)
+    grade = p.gravity * (p.rolling_resistance * math.cos(slope) + math.sin(slope))
+    return (force, drag, delta * ax, grade, 3.6 * v)
+
+
+class FeatureBlocks:
+    """Block means of the Eq. (15) features and of x' (Eq. 16), and a window of the last
+    ``window`` blocks.
+
+    The paper feeds the network every 0.01 s sample; here ``block_steps`` consecutive samples
+    are averaged first (0.1 s by default) so that a window of a few tokens spans a second
+    or more, the wheel-speed derivative noise in a_x averages down, and one network call per
+    block carries all the information the samples have. The same class builds the training
+    windows (:mod:`vehicle_estimation.training.truck_data`), so training and use cannot differ.
+    """
+
+    def __init__(self, block_steps: int, window: int) -> None:
+        self.block_steps = int(block_steps)
+        self.window = int(window)
+        self.clear()
+
+    def clear(self) -> None:
+        self._sum_nn = np.zeros(len(NN_FEATURES))
+        self._sum_tau = np.zeros(len(TAU_FEATURES))
+        self._count = 0
+        self.blocks: collections.deque[np.ndarray] = collections.deque(maxlen=self.window)
+        self.last_tau_features = np.full(len(TAU_FEATURES), np.nan)
+
+    def add(self, nn_features: tuple[float, ...], tau_features: tuple[float, ...]) -> bool:
+        """Add one sample; True when it completed a block."""
+        self._sum_nn += nn_features
+        self._sum_tau += tau_features
+        self._count += 1
+        if self._count < self.block_steps:
+            return False
+        self.blocks.append(self._sum_nn / self._count)
+        self.last_tau_features = self._sum_tau / self._count
+        self._sum_nn[:] = 0.0
+        self._sum_tau[:] = 0.0
+        self._count = 0
+        return True
+
+    @property
+    def full(self) -> bool:
+        return len(self.blocks) == self.window
+
+    def array(self) -> np.ndarray:
+        """The window (window, 5), oldest block first."""
+        return np.stack(list(self.blocks))
+
+
+def drive_force_input(params: VehicleParams, vx: float, drive_force: Any, engine_torque: Any,
+                      engine_speed: Any, gear: Any, brake_torque: Any,
+                      min_speed: float) -> tuple[float, float] | None:
+    """(F_t, dF_t/dv) from the first available source (module docstring), less T_b / r;
+    None when no source is available."""
+    p = params
+    brake = max(float(brake_torque), 0.0) / p.wheel_radius if _finite(brake_torque) else 0.0
+    if _finite(drive_force):
+        return float(drive_force) - brake, 0.0
+    if not _finite(engine_torque):
+        return None
+    torque = float(engine_torque)
+    if _finite(gear) and 1 <= round(float(gear)) <= len(p.gear_ratios):
+        force = torque * p.driveline_efficiency * p.effective_gearing(int(round(float(gear))))
+        return force - brake, 0.0
+    if _finite(engine_speed) and vx >= max(min_speed, 0.5):
+        force = p.driveline_efficiency * torque * float(engine_speed) / vx         # Eqs. (7), (13)
+        return force - brake, -force / vx
+    return None
+
+
+# --------------------------------------------------------------------- configuration
+@dataclasses.dataclass(frozen=True)
+class TaAekfConfig:
+    """Tuning of :class:`TaAekfMassEstimator` (SI units).
+
+    * ``model_path``: stem of the model files (``<stem>.safetensors`` + ``<stem>.json``);
+      empty: the shipped model (``vehicle_estimation/models/mass_transformer``).
+    * ``use_network``: False runs the EKF alone (the paper's "EKF" row), no torch needed.
+    * ``fixed_tau``: NaN = the adaptive tau of Eq. (19); a value in (0, 1] fixes it
+      (Table 6: 1e-15 and 1).
+    * ``inference_period_steps`` (N): the transformer runs once every N samples, when a new
+      block of ``N`` samples is complete, so N is also the block length of the features. 10
+      samples (0.1 s at 100 Hz) costs one inference of ~1 ms per 0.1 s (about 1 % of one core)
+      and is far faster than the mass can change (only at stops, by loading), yet gives the
+      filter a fresh observation every 0.1 s so that it converges within a couple of seconds
+      of driving. It must equal the block length the model was trained with.
+    * ``initial_mass``: x_0 of Algorithm 1 [kg]; NaN: the mean gross mass of the model's
+      training set (the vehicle's mass parameter with ``use_network`` False).
+    * ``initial_mass_rel_std``: prior std of 1/m relative to 1/m_0.
+    * ``velocity_noise_std``: sqrt(R_v) of the speed observation [m/s].
+    * ``accel_noise_density``: process noise of v [m/s^2 sqrt(s)] (model errors: slope error,
+      wind, tyre slip), Q_v = density^2 dT.
+    * ``mass_walk_rel``: random walk of 1/m relative to 1/m per sqrt(s), Q_theta =
+      (rel / m)^2 dT: the mass is constant while driving; a small walk keeps the filter alive.
+    * ``network_rel_std``: sqrt(R_nn) relative to 1/m_nn; NaN: the relative RMSE of the
+      model on its validation set (stored with the model). Times ``network_std_scale``
+      (default 3 ~ sqrt(w) for w = 10 blocks per window): consecutive outputs share w - 1 of
+      their w blocks, so their errors are strongly correlated; inflating R_nn by ~w keeps
+      the filter from counting the same information w times (the paper feeds every output
+      with R_nn = sigma^2 and does not discuss this).
+    * ``accel_from_speed``: the network's a_x feature is the least-squares slope of the last
+      ``accel_fit_samples`` speeds given to :meth:`TaAekfMassEstimator.step` (20 = 0.2 s at
+      100 Hz), exactly how the training data defines it; False: the ``ax`` argument. The
+      filter itself never uses a measured a_x (Eq. 30 predicts it from Eq. 14).
+    * ``network_gate_sigma``: a network output whose innovation 1/m_nn - 1/m exceeds this
+      many sigma of its innovation covariance is not used (0: off, the paper's Algorithm 1).
+      Not in the paper: tau of Eq. (19) only asks whether [F_t, a_x, v_x, alpha] look like
+      the training drives, and a car on the same roads and speeds does (its forces are
+      inside the truck's low-force range), so tau alone would let a truck-trained network
+      drag a car's estimate to truck masses; once the physics has converged the gate stops it.
+    """
+
+    model_path: str = ""
+    use_network: bool = True
+    fixed_tau: float = math.nan
+    inference_period_steps: int = 10
+    initial_mass: float = math.nan
+    initial_mass_rel_std: float = 1.0
+    velocity_noise_std: float = 0.05
+    accel_noise_density: float = 0.05
+    mass_walk_rel: float = 2e-4
+    network_rel_std: float = math.nan
+    network_std_scale: float = 3.0        # R_nn inflation for correlated network outputs (see network_rel_std)
+    network_gate_sigma: float = 4.0
+    accel_from_speed: bool = True
+    accel_fit_samples: int = 20           # speeds in the least-squares a_x feature (20 = 0.2 s at 100 Hz)
+    min_speed: float = 1.0              # [m/s] below it the filter only tracks v
+    max_step_s: float = 0.5             # larger time steps restart v from the measurement
+    max_abs_slope: float = 0.35         # [rad]
+    max_abs_accel: float = 15.0         # [m/s^2]
+    max_speed: float = 100.0            # [m/s]
+    max_abs_force: float = 1.0e6        # [N]
+    # --- convergence flag over the last `convergence_window` estimates
+    convergence_window: int = 200         # mass updates the convergence flag looks back over
+    convergence_max_cv: float = 0.01      # c_v (Eq. 40) of those updates below this: converged
+    convergence_max_rel_std: float = 0.05   # sqrt(variance) / mass
+    min_mass: float = 300.0             # published mass is clipped to [min_mass, max_mass] [kg]
+    max_mass: float = 100000.0          # [kg]
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid field."""
+        def num(name: str) -> float:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+            return float(value)
+
+        if not isinstance(self.model_path, str):
+            raise ValueError(f"model_path must be a string, got {self.model_path!r}")
+        if not isinstance(self.use_network, bool):
+            raise ValueError(f"use_network must be a bool, got {self.use_network!r}")
+        tau = num("fixed_tau")
+        if not math.isnan(tau) and not 0.0 < tau <= 1.0:
+            raise ValueError(f"fixed_tau must be NaN (adaptive) or in (0, 1], got {tau!r}")
+        if not isinstance(self.accel_from_speed, bool):
+            raise ValueError(f"accel_from_speed must be a bool, got {self.accel_from_speed!r}")
+        for name in ("inference_period_steps", "convergence_window", "accel_fit_samples"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        m0 = num("initial_mass")
+        if not math.isnan(m0) and not (math.isfinite(m0) and m0 > 0.0):
+            raise ValueError(f"initial_mass must be NaN or finite and > 0, got {m0!r}")
+        for name in ("initial_mass_rel_std", "velocity_noise_std", "accel_noise_density",
+                     "network_std_scale", "max_step_s", "max_abs_slope", "max_abs_accel",
+                     "max_speed", "max_abs_force", "convergence_max_cv",
+                     "convergence_max_rel_std", "min_mass", "max_mass"):
+            value = num(name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+        for name in ("mass_walk_rel", "min_speed", "network_gate_sigma"):
+            value = num(name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        rel = num("network_rel_std")
+        if not math.isnan(rel) and not (math.isfinite(rel) and rel > 0.0):
+            raise ValueError(f"network_rel_std must be NaN or finite and > 0, got {rel!r}")
+        if self.min_mass >= self.max_mass:
+            raise ValueError("min_mass must be below max_mass")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> TaAekfConfig:
+        """Build from a flat mapping (e.g. ROS parameters); unknown keys are an error."""
+        return dataclass_from_mapping(cls, values, "unknown ta_aekf mass estimator parameter {key!r}")
+
+
+# --------------------------------------------------------------------- node-facing estimator
+class TaAekfMassEstimator:
+    """Online mass by TA-AEKF (paper 000 Algorithm 1), same outward API as
+    :class:`~vehicle_estimation.estimators.mass.mass_ffrls.FFRLSMassEstimator`.
+
+    Call :meth:`step` once per powertrain sample (100 Hz). Properties: :attr:`mass` (clipped
+    to the configured bounds), :attr:`variance` [kg^2] (delta method from P of 1/m:
+    var(m) = P_22 m^4), :attr:`converged`, :attr:`samples_used` (EKF updates of the mass),
+    :attr:`rejected`; diagnostics :attr:`last_tau`, :attr:`last_network_mass`.
+    """
+
+    REJECT_REASONS = REJECT_REASONS
+
+    def __init__(self, params: VehicleParams, config: TaAekfConfig | None = None,
+                 model: MassModel | None = None) -> None:
+        self.params = params
+        self.config = config if config is not None else TaAekfConfig()
+        self.config.validate()
+        cfg = self.config
+        self.model: MassModel | None = None
+        if cfg.use_network:
+            if model is None:
+                from vehicle_estimation.estimators.mass.mass_transformer import MassModel
+                model = MassModel.load(cfg.model_path or DEFAULT_MODEL_STEM)
+            if model.spec.block_steps != cfg.inference_period_steps:
+                raise ValueError(
+                    f"inference_period_steps ({cfg.inference_period_steps}) must equal the block "
+                    f"length the model was trained with ({model.spec.block_steps})")
+            self.model = model
+        # delta of Eq. (8) for the *features* only: a constant, which feature normalisation
+        # absorbs; the filter uses the exact 1 + J/m (see the module docstring).
+        self.feature_delta = 1.0 + params.wheel_inertia / params.wheel_radius ** 2 / params.curb_mass
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def _prior_mass(self) -> float:
+        m0 = self.config.initial_mass
+        if math.isnan(m0):
+            m0 = self.model.training_mean_mass if self.model is not None else self.params.mass
+        return float(m0)
+
+    def reset(self, mass: float | None = None) -> None:
+        """Restart from ``mass`` (default the configured prior) and clear all statistics."""
+        m0 = self._prior_mass() if mass is None else float(mass)
+        if not (math.isfinite(m0) and m0 > 0.0):
+            raise ValueError(f"reset mass must be finite and > 0, got {mass!r}")
+        theta0 = 1.0 / m0
+        p0 = np.diag([1.0, (self.config.initial_mass_rel_std * theta0) ** 2])
+        self.ekf = AdaptiveEKF(np.array([0.0, theta0]), p0)
+        self.features = FeatureBlocks(self.config.inference_period_steps,
+                                      self.model.spec.window if self.model is not None else 1)
+        self._v_initialised = False
+        self._speed_history: collections.deque[tuple[float, float]] = collections.deque(
+            maxlen=self.config.accel_fit_samples)
+        self._t_last = -math.inf
+        self._window: collections.deque[float] = collections.deque(maxlen=self.config.convergence_window)
+        self.samples_used = 0
+        self.rejected: dict[str, int] = {reason: 0 for reason in REJECT_REASONS}
+        self.last_tau = math.nan
+        self.last_network_mass = math.nan
+        self.network_updates = 0      # network outputs used by the filter
+        self.network_gated = 0        # network outputs refused by network_gate_sigma
+
+    def state_dict(self) -> dict[str, float]:
+        """Plain floats for persistence: 1/m with its variance and the counters (the velocity
+        and the feature window restart from the next samples)."""
+        return {"mass": float(1.0 / self.ekf.x[1]), "inv_mass": float(self.ekf.x[1]),
+                "inv_mass_variance": float(self.ekf.P[1, 1]),
+                "samples_used": float(self.samples_used)}
+
+    def load_state_dict(self, state: Mapping[str, float]) -> None:
+        """Restore :meth:`state_dict` output; ``ValueError`` on missing or invalid values."""
+        try:
+            inv_mass = float(state["inv_mass"])
+            var = float(state["inv_mass_variance"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"ta_aekf state needs finite 'inv_mass' and 'inv_mass_variance': {exc}") from None
+        if not (math.isfinite(inv_mass) and inv_mass > 0.0 and math.isfinite(var) and var > 0.0):
+            raise ValueError(f"ta_aekf state out of range: inv_mass={inv_mass!r}, variance={var!r}")
+        self.reset(mass=1.0 / inv_mass)
+        self.ekf.P[1, 1] = var
+        used = float(state.get("samples_used", 0.0))
+        self.samples_used = int(used) if math.isfinite(used) and used >= 0 else 0
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def raw_mass(self) -> float:
+        return float(1.0 / self.ekf.x[1]) if self.ekf.x[1] > 0.0 else math.inf
+
+    @property
+    def mass(self) -> float:
+        """Estimated mass [kg], clipped to [min_mass, max_mass] (the state is not)."""
+        return min(max(self.raw_mass, self.config.min_mass), self.config.max_mass)
+
+    @property
+    def variance(self) -> float:
+        """var(m) ~ P_22 / theta^4 [kg^2] (first-order propagation through m = 1/theta)."""
+        theta = float(self.ekf.x[1])
+        return float(self.ekf.P[1, 1]) / theta ** 4 if theta > 0.0 else math.inf
+
+    @property
+    def converged(self) -> bool:
+        """The last ``convergence_window`` mass updates vary by less than
+        ``convergence_max_cv`` (c_v of Eq. 40) and the std is below ``convergence_max_rel_std``."""
+        w = self._window
+        if len(w) < (w.maxlen or 0):
+            return False
+        arr = np.fromiter(w, float)
+        mean = float(arr.mean())
+        if not mean > 0.0:
+            return False
+        return (float(arr.std()) / mean < self.config.convergence_max_cv
+                and math.sqrt(self.variance) / self.mass < self.config.convergence_max_rel_std)
+
+    # ------------------------------------------------------------------ update
+    def _reject(self, reason: str) -> bool:
+        self.rejected[reason] += 1
+        return False
+
+    def _drive(self, vx: float, drive_force: Any, engine_torque: Any, engine_speed: Any,
+               gear: Any, brake_torque: Any) -> tuple[float, float] | None:
+        return drive_force_input(self.params, vx, drive_force, engine_torque, engine_speed, gear,
+                                 brake_torque, self.config.min_speed)
+
+    def step(self, t: float, vx: float, ax: float, slope: float, *,
+             drive_force: float = math.nan, engine_torque: float = math.nan,
+             engine_speed: float = math.nan, engine_load: float = math.nan,
+             gear: float = math.nan, brake_torque: float = 0.0, heading: float = math.nan) -> bool:
+        """Process one sample; True when the mass estimate was updated.
+
+        ``t`` [s], ``vx`` longitudinal speed [m/s] (observation y_k of Eq. 31), ``ax``
+        dv_x/dt [m/s^2] without gravity (a network feature only, and only with
+        ``accel_from_speed`` False; by default the core derives it from ``vx`` as the training
+        data does; the filter predicts a_x from Eq. 14), ``slope`` road grade alpha [rad,
+        + uphill] (the slope node's estimate), ``brake_torque`` total over the
+        wheels [N m]. Drive force: ``drive_force`` [N] at the wheels, else ``engine_torque``
+        [N m] with ``gear`` (1-based) or with ``engine_speed`` [rad/s] (Eq. 13).
+        ``engine_load`` and ``heading`` are accepted for call compatibility with
+        :meth:`~vehicle_estimation.estimators.mass.mass_rls.LongitudinalMassEstimator.step` and not used.
+        """
+        cfg = self.config
+        if not all(_finite(v) for v in (t, vx, slope)):
+            return self._reject("nan")
+        t, vx, slope = float(t), float(vx), float(slope)
+        if not t > self._t_last:
+            return self._reject("time")
+        ax_f = float(ax) if _finite(ax) and not cfg.accel_from_speed else math.nan
+        if abs(vx) > cfg.max_speed or abs(slope) > cfg.max_abs_slope \
+                or (math.isfinite(ax_f) and abs(ax_f) > cfg.max_abs_accel):
+            return self._reject("absurd")
+        dt = t - self._t_last
+        self._t_last = t
+        if dt > cfg.max_step_s:
+            self._speed_history.clear()
+        self._speed_history.append((t, vx))
+        if cfg.accel_from_speed:
+            ax_f = self._history_slope()
+            if not abs(ax_f) <= cfg.max_abs_accel:     # a speed glitch: no network input
+                ax_f = math.nan
+        drive = self._drive(vx, drive_force, engine_torque, engine_speed, gear, brake_torque)
+        if drive is not None and not (math.isfinite(drive[0]) and abs(drive[0]) <= cfg.max_abs_force):
+            return self._reject("absurd")
+
+        if not self._v_initialised or dt > cfg.max_step_s:
+            gap = self._v_initialised
+            self.ekf.x[0] = vx
+            self.ekf.P[0, 0] = cfg.velocity_noise_std ** 2
+            self.ekf.P[0, 1] = self.ekf.P[1, 0] = 0.0
+            self._v_initialised = True
+            self.features.clear()
+            return self._reject("gap") if gap else False
+        if vx < cfg.min_speed:
+            self._track_speed_only(vx)
+            self.features.clear()
+            return self._reject("speed")
+        if drive is None:
+            self._track_speed_only(vx)
+            self.features.clear()
+            return self._reject("no_force")
+        force, dforce_dv = drive
+
+        # Network: block features; a completed block with a full window gives 1/m_nn and tau.
+        # Without a_x (the first accel_fit_samples) only the network waits, not the filter.
+        nn_obs: tuple[float, float, float] | None = None
+        if self.model is not None and not math.isfinite(ax_f):
+            self.features.clear()
+        elif self.model is not None:
+            nn_features = eq15_features(force, vx, ax_f, slope, self.params, self.feature_delta)
+            if self.features.add(nn_features, (force, ax_f, vx, slope)) and self.features.full:
+                m_nn = float(self.model.predict(self.features.array()[None])[0])
+                tau = cfg.fixed_tau if not math.isnan(cfg.fixed_tau) else \
+                    float(self.model.confidence(self.features.last_tau_features))
+                self.last_network_mass, self.last_tau = m_nn, tau
+                if math.isfinite(m_nn) and m_nn > 0.0 and math.isfinite(tau):
+                    rel = cfg.network_rel_std if not math.isnan(cfg.network_rel_std) \
+                        else self.model.validation_rel_rmse
+                    rel *= cfg.network_std_scale
+                    nn_obs = (1.0 / m_nn, (rel / m_nn) ** 2, tau)
+
+        x_before, p_before = self.ekf.x.copy(), self.ekf.P.copy()
+        theta = max(float(self.ekf.x[1]), 1e-9)
+        q = np.diag([cfg.accel_noise_density ** 2 * dt, (cfg.mass_walk_rel * theta) ** 2 * dt])
+        u = DriveInput(force, dforce_dv, slope)
+        try:
+            self.ekf.predict(u, dt, q, self.params)                       # Eqs. (22)-(23)
+            if nn_obs is None:
+                self.ekf.update(vx, cfg.velocity_noise_std ** 2)          # Eqs. (24)-(26)
+            elif self.ekf.update(vx, cfg.velocity_noise_std ** 2, *nn_obs,   # Algorithm 1
+                                 gate_sigma=cfg.network_gate_sigma):
+                self.network_updates += 1
+            else:
+                self.network_gated += 1
+        except np.linalg.LinAlgError:
+            self.ekf.x, self.ekf.P = x_before, p_before
+            return self._reject("numeric")
+        if not (np.all(np.isfinite(self.ekf.x)) and np.all(np.isfinite(self.ekf.P))
+                and self.ekf.x[1] > 0.0 and self.ekf.P[1, 1] > 0.0 and self.ekf.P[0, 0] > 0.0):
+            self.ekf.x, self.ekf.P = x_before, p_before
+            return self._reject("numeric")
+        self.samples_used += 1
+        self._window.append(self.raw_mass)
+        return True
+
+    def _history_slope(self) -> float:
+        """Least-squares slope of the last ``accel_fit_samples`` speeds over their stamps
+        (NaN until there are that many), the a_x of the training data (training/truck_data.py)."""
+        hist = self._speed_history
+        if len(hist) < (hist.maxlen or 0):
+            return math.nan
+        arr = np.asarray(hist)
+        tc = arr[:, 0] - arr[:, 0].mean()
+        den = float(tc @ tc)
+        return float(tc @ arr[:, 1]) / den if den > 0.0 else math.nan
+
+    def _track_speed_only(self, vx: float) -> None:
+        """Outside the model's validity: follow the measured speed, keep 1/m and its variance."""
+        self.ekf.x[0] = vx
+        self.ekf.P[0, 0] = self.config.velocity_noise_std ** 2
+        self.ekf.P[0, 1] = self.ekf.P[1, 0] = 0.0

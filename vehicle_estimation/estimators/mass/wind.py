@@ -1,0 +1,198 @@
+"""Online estimate of a steady ambient wind from the longitudinal force balance, for the drag
+term of paper 003's mass estimator. Plain Python/NumPy, no ROS.
+
+Why: paper 003 (Jensen et al. 2022) Secs. 7.4-7.5 show that ambient wind biases the RLS mass at
+highway speed (a 5 m/s headwind at 110 km/h adds ~100 N of drag, which Eq. (6) books as mass),
+and name its compensation as the open problem (Sec. 8). Fig. 17 of the paper compensates a
+*known* wind by projecting it on the heading; here the wind is *estimated*.
+
+Model. With the air velocity w = (w_E, w_N) in ENU (the direction the air moves to) and the
+vehicle heading psi (ENU yaw, from east, counter-clockwise), the air speed along the vehicle is
+v - w_a with w_a = w_E cos(psi) + w_N sin(psi) (a tailwind has w_a > 0), and Eq. (1) reads::
+
+    z = F_p - (I_w/r^2 + I_e G^2) a = m phi + 1/2 rho C_a (v - w_a) |v - w_a|          (*)
+
+with phi of Eq. (5). The force residual of a wrong wind changes sign with the heading while
+the mass term does not; so over a drive with heading changes (any real route) (*) separates
+m from w. An extended Kalman filter on x = [m, w_E, w_N] with random-walk process noise does
+this jointly (the mass is a nuisance state here, so that a load change is not mistaken for wind;
+the published mass stays the paper's scalar RLS, which then uses this wind in its drag term)::
+
+    predict:  P <- P + diag(q_m, q_w, q_w) dt
+    update:   H = [phi, -rho C_a |v - w_a| cos(psi), -rho C_a |v - w_a| sin(psi)],
+              S = H P H^T + sigma^2, K = P H^T / S, x <- x + K (z - h(x)),
+              P <- (I - K H) P (I - K H)^T + K sigma^2 K^T          (Joseph form)
+
+Inputs per sample (all already computed by the mass core for Eq. (6)): time, speed v [m/s],
+heading psi [rad] (the fusion node's odometry yaw in ENU), phi [m/s^2] and z [N]. It needs
+nothing else: the drag area C_a and air density come from the (calibrated) vehicle. Vertical
+wind and gusts are not modelled; the random walk lets the wind drift slowly (``random_walk``).
+
+Limits (documented, not hidden): the wind is only observable after the heading has changed by a
+good fraction of a turn; any force-model error that depends on the heading (none in theory)
+would be read as wind; a wrong C_a makes the wind estimate absorb part of the drag error on
+straight stretches, which is harmless for the mass (the compensation then corrects that too).
+Samples are gated: v >= ``min_speed`` (the wind term scales with v), finite inputs, increasing
+time, and an innovation test |z - h| <= ``gate`` sqrt(S) (gusts, model outliers); rejected
+samples are counted in :attr:`WindEstimator.rejected`, never raised.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Mapping
+
+import numpy as np
+
+REJECT_REASONS = ("nan", "time", "speed", "innovation")
+
+
+@dataclasses.dataclass(frozen=True)
+class WindEstimatorConfig:
+    """Tuning of :class:`WindEstimator` (SI)."""
+
+    force_std: float = 150.0          # sigma of z in (*) per 0.25 s sample: torque-map and grade errors [N]
+    random_walk: float = 0.02         # wind random walk [m/s per sqrt(s)] (1.2 m/s per hour)
+    mass_random_walk: float = 5.0     # nuisance-mass random walk [kg per sqrt(s)] (follows load changes)
+    initial_wind_std: float = 6.0     # prior sigma of each wind component [m/s]
+    initial_mass_std: float = 600.0   # prior sigma of the nuisance mass [kg]
+    min_speed: float = 8.0            # no wind update below this speed [m/s]
+    gate: float = 5.0                 # innovation test in standard deviations
+    max_abs_wind: float = 25.0        # the published wind is clipped to this magnitude [m/s]
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid field."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"{f.name} must be a finite number, got {value!r}")
+        for name in ("force_std", "initial_wind_std", "initial_mass_std", "gate", "max_abs_wind"):
+            if getattr(self, name) <= 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("random_walk", "mass_random_walk", "min_speed"):
+            if getattr(self, name) < 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "WindEstimatorConfig":
+        from vehicle_estimation.contract.vehicle import dataclass_from_mapping
+        return dataclass_from_mapping(cls, values, "unknown wind estimator parameter {key!r}")
+
+
+def _finite(*values: float) -> bool:
+    try:
+        return all(math.isfinite(float(v)) for v in values)
+    except (TypeError, ValueError):
+        return False
+
+
+class WindEstimator:
+    """EKF on [m, w_E, w_N] from the longitudinal force balance (*) of the module docstring."""
+
+    def __init__(self, air_density: float, drag_area: float, initial_mass: float,
+                 config: WindEstimatorConfig | None = None) -> None:
+        self.config = config if config is not None else WindEstimatorConfig()
+        self.config.validate()
+        if not (_finite(air_density, drag_area, initial_mass) and air_density > 0 and drag_area > 0
+                and initial_mass > 0):
+            raise ValueError("air_density, drag_area and initial_mass must be finite and > 0")
+        self.k_drag = 0.5 * float(air_density) * float(drag_area)
+        self.initial_mass = float(initial_mass)
+        self.reset()
+
+    def reset(self) -> None:
+        cfg = self.config
+        self.x = np.array([self.initial_mass, 0.0, 0.0])
+        self.P = np.diag([cfg.initial_mass_std ** 2, cfg.initial_wind_std ** 2, cfg.initial_wind_std ** 2])
+        self._p_max = np.diag(self.P).copy()
+        self._last_t = math.nan
+        self.samples_used = 0
+        self.rejected: dict[str, int] = {reason: 0 for reason in REJECT_REASONS}
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def wind_enu(self) -> tuple[float, float]:
+        """Estimated air velocity (E, N) [m/s], clipped to ``max_abs_wind`` in magnitude."""
+        e, n = float(self.x[1]), float(self.x[2])
+        speed = math.hypot(e, n)
+        if speed > self.config.max_abs_wind:
+            e, n = e * self.config.max_abs_wind / speed, n * self.config.max_abs_wind / speed
+        return e, n
+
+    @property
+    def wind_std(self) -> tuple[float, float]:
+        return math.sqrt(max(self.P[1, 1], 0.0)), math.sqrt(max(self.P[2, 2], 0.0))
+
+    @property
+    def wind_speed(self) -> float:
+        return math.hypot(*self.wind_enu)
+
+    @property
+    def wind_from_deg(self) -> float:
+        """Meteorological direction the wind blows *from*, degrees clockwise from north."""
+        e, n = self.wind_enu
+        return math.degrees(math.atan2(-e, -n)) % 360.0
+
+    @property
+    def nuisance_mass(self) -> float:
+        return float(self.x[0])
+
+    def along(self, heading: float) -> float:
+        """Wind component along the heading w_a [m/s] (+: tailwind); 0 for a non-finite heading."""
+        if not _finite(heading):
+            return 0.0
+        e, n = self.wind_enu
+        return e * math.cos(heading) + n * math.sin(heading)
+
+    def drag(self, v: float, heading: float) -> float:
+        """Aerodynamic drag 1/2 rho C_a (v - w_a)|v - w_a| [N] with the estimated wind."""
+        va = float(v) - self.along(heading)
+        return self.k_drag * va * abs(va)
+
+    # ------------------------------------------------------------------ update
+    def update(self, t: float, v: float, heading: float, phi: float, net_force: float) -> bool:
+        """One sample of (*): ``net_force`` = F_p - (I_w/r^2 + I_e G^2) a [N]. True when used."""
+        cfg = self.config
+        if not _finite(t, v, heading, phi, net_force):
+            self.rejected["nan"] += 1
+            return False
+        t, v, heading, phi, z = float(t), float(v), float(heading), float(phi), float(net_force)
+        if math.isfinite(self._last_t) and t <= self._last_t:
+            self.rejected["time"] += 1
+            return False
+        if v < cfg.min_speed:
+            self.rejected["speed"] += 1
+            return False
+        dt = 0.0 if math.isnan(self._last_t) else t - self._last_t
+        q = np.array([cfg.mass_random_walk ** 2, cfg.random_walk ** 2, cfg.random_walk ** 2]) * dt
+        P = self.P + np.diag(q)
+        # A long stop must not inflate the covariance beyond the prior.
+        d = np.minimum(np.diag(P), self._p_max)
+        P[np.diag_indices(3)] = d
+        c, s = math.cos(heading), math.sin(heading)
+        m, we, wn = self.x
+        va = v - (we * c + wn * s)
+        h = m * phi + self.k_drag * va * abs(va)
+        H = np.array([phi, -2.0 * self.k_drag * abs(va) * c, -2.0 * self.k_drag * abs(va) * s])
+        R = cfg.force_std ** 2
+        PHt = P @ H
+        S = float(H @ PHt) + R
+        innov = z - h
+        self._last_t = t
+        if not (math.isfinite(S) and S > 0.0) or abs(innov) > cfg.gate * math.sqrt(S):
+            self.P = P
+            self.rejected["innovation"] += 1
+            return False
+        K = PHt / S
+        x_new = self.x + K * innov
+        IKH = np.eye(3) - np.outer(K, H)
+        P_new = IKH @ P @ IKH.T + np.outer(K, K) * R
+        if not (np.all(np.isfinite(x_new)) and np.all(np.isfinite(P_new))):
+            self.P = P
+            self.rejected["nan"] += 1
+            return False
+        self.x = x_new
+        self.P = 0.5 * (P_new + P_new.T)
+        self.samples_used += 1
+        return True

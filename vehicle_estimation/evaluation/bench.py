@@ -1,0 +1,550 @@
+"""``vehicle-estimation bench``: speed and memory figures (a table, never an assertion).
+
+Sections (``--sections``, default all):
+
+``cores``
+    Per-step cost (median and p99, µs) of every estimator core on the arrays of one simulated
+    drive, each core fed what its node feeds it: the fusion ES-EKF (IMU step, speed and GNSS
+    updates), the three slope methods, the CKF, the VB-ACKF for N = 1..5 variational
+    iterations, the anti-outlier UKF with and without the GA-BPNN correction, filterpy's UKF on
+    the same 3-DOF model and data (as a ratio to ours), RLS, FFRLS and the TA-AEKF with its
+    transformer inference.
+``pipeline``
+    A ``--minutes`` (default 30) simulated drive (IMU 200 Hz, CAN 100 Hz, GNSS 10 Hz) replayed
+    through the four nodes, each in its own process: real-time factor, CPU seconds per node,
+    resident memory of each node after 1 simulated minute and at the end.
+``live``
+    ``--live-seconds`` of the same drive published at real-time rate to the nodes in live mode
+    (no replay sync): CPU share of each node, and the latency from an input's publication to
+    the publication of the output it triggers (p50, p99), per output.
+
+The targets of issue 6 are printed beside the figures. Timings depend on the machine and on
+what else runs on it: run it on an idle machine and compare like with like.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+TARGETS = {
+    "replay_rt": 20.0,          # replay >= 20x real time, four processes on 2 cores
+    "cpu_share": 0.25,          # all nodes together < 25 % of one core at real time
+    "latency_p99_ms": 5.0,      # p99 input -> output latency
+    "memory_growth": 0.05,      # < 5 % growth of resident memory, minute 1 -> minute 30
+    "ukf_vs_filterpy": 2.0,     # our UKF >= 2x faster per step than filterpy's
+}
+
+
+# ============================================================================ cores
+@dataclasses.dataclass
+class StepTiming:
+    name: str
+    steps: int
+    median_us: float
+    p99_us: float
+    note: str = ""
+
+
+def time_steps(name: str, calls: Iterable[Callable[[], Any]], note: str = "", warmup: int = 20) -> StepTiming:
+    """Run every call once, timing each; the first ``warmup`` are not counted."""
+    durations = []
+    clock = time.perf_counter_ns
+    for i, call in enumerate(calls):
+        t0 = clock()
+        call()
+        dt = clock() - t0
+        if i >= warmup:
+            durations.append(dt)
+    if not durations:
+        raise ValueError(f"{name}: no timed steps")
+    d = np.asarray(durations, dtype=float) * 1e-3
+    return StepTiming(name, len(d), float(np.median(d)), float(np.percentile(d, 99)), note)
+
+
+class DriveArrays:
+    """The sensor arrays of a simulated drive, resampled where a core wants another rate."""
+
+    def __init__(self, seconds: float, seed: int = 1) -> None:
+        from vehicle_estimation.sim import default_scenario, simulate
+        self.result = simulate(default_scenario(duration_s=seconds, seed=seed))
+        s, tr = self.result.sensors, self.result.truth
+        self.vehicle = self.result.scenario.vehicle
+        self.imu_t, self.accel, self.gyro = s["imu"]["t"], s["imu"]["accel"], s["imu"]["gyro"]
+        self.speed_t, self.speed_v = s["speed"]["t"], s["speed"]["v"]
+        self.gnss = s["gnss"]
+        self.js = s["joint_states"]
+        self.pt = s["powertrain"]
+        self.truth = tr
+
+    def at_truth(self, key: str, t: np.ndarray) -> np.ndarray:
+        return np.interp(t, self.truth["t"], self.truth[key])
+
+    def state_inputs(self, i_every: int = 2) -> list[tuple[float, Any, np.ndarray]]:
+        """(t, VehicleInputs, z = [ax, ay, r]) at 100 Hz, as the state node builds them."""
+        from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
+        out = []
+        js_t = self.js["t"]
+        vp = self.vehicle
+        for i in range(0, len(self.imu_t), i_every):
+            t = float(self.imu_t[i])
+            j = min(int(np.searchsorted(js_t, t)), len(js_t) - 1)
+            wheels = self.js["velocity"][j, :4]
+            steer = float(self.js["position"][j, 4]) / vp.steering_ratio
+            inputs = VehicleInputs(steer_angle=steer, wheel_speeds=np.array(wheels, dtype=float),
+                                   slope=float(self.at_truth("slope", np.array([t]))[0]), mass=vp.mass)
+            z = np.array([self.accel[i, 0], self.accel[i, 1], self.gyro[i, 2]])
+            out.append((t, inputs, z))
+        return out
+
+
+def bench_fusion(d: DriveArrays) -> list[StepTiming]:
+    from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+    # As params/estimation.yaml runs it: the mounting states on, with the tight vertical constraint.
+    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1))
+    events = [(float(t), 0, i) for i, t in enumerate(d.imu_t)]
+    events += [(float(t), 1, i) for i, t in enumerate(d.speed_t)]
+    events += [(float(t), 2, i) for i, t in enumerate(d.gnss["t"])]
+    events.sort()
+    per_kind: dict[int, list[int]] = {0: [], 1: [], 2: []}
+    clock = time.perf_counter_ns
+    for t, kind, i in events:
+        t0 = clock()
+        if kind == 0:
+            ekf.process_imu(t, d.accel[i], d.gyro[i])
+        elif kind == 1:
+            ekf.update_speed(t, float(d.speed_v[i]))
+        elif math.isfinite(d.gnss["enu_meas"][i, 0]):
+            ekf.update_gnss(t, d.gnss["enu_meas"][i], np.diag(d.gnss["cov"]))
+        per_kind[kind].append(clock() - t0)
+    out = []
+    for kind, label in ((0, "fusion ES-EKF: IMU step (17 states, incl. vehicle constraints)"),
+                        (1, "fusion ES-EKF: CAN speed update"), (2, "fusion ES-EKF: GNSS update")):
+        x = np.asarray(per_kind[kind][20:], dtype=float) * 1e-3
+        out.append(StepTiming(label, len(x), float(np.median(x)), float(np.percentile(x, 99))))
+    return out
+
+
+def bench_slope(d: DriveArrays) -> list[StepTiming]:
+    from vehicle_estimation.estimators.slope.slope import (
+        ClassicalSlopeObserver,
+        CubicPredictionSlopeObserver,
+        PitchGradeSlope,
+    )
+    t = d.imu_t
+    vx = d.at_truth("vx", t)
+    grade = d.at_truth("slope", t)
+    out = []
+    for name, obs in (("slope: classical (paper 004 Eqs. 32-33)", ClassicalSlopeObserver()),
+                      ("slope: cubic_prediction (paper 004 Eqs. 15-27)", CubicPredictionSlopeObserver())):
+        out.append(time_steps(name, (lambda i=i, o=obs: o.step(float(t[i]), float(d.accel[i, 0]), float(vx[i]))
+                                     for i in range(len(t)))))
+    pitch = PitchGradeSlope()
+    out.append(time_steps("slope: fusion_pitch (paper 003 Sec. 7.2, LWMA)",
+                          (lambda i=i: pitch.step(float(t[i]), float(grade[i]), 1e-5) for i in range(len(t)))))
+    return out
+
+
+def bench_state(d: DriveArrays) -> list[StepTiming]:
+    from vehicle_estimation.estimators.state.ckf import VehicleStateCKF
+    from vehicle_estimation.estimators.state.vbackf import VBConfig, VehicleStateVBACKF
+    samples = d.state_inputs()
+    out = []
+    ckf = VehicleStateCKF(d.vehicle)
+    out.append(time_steps("vehicle state: CKF (paper 004, 5 states, 4-wheel Dugoff)",
+                          (lambda s=s: ckf.step(*s) for s in samples)))
+    for n in range(1, 6):
+        vb = VehicleStateVBACKF(d.vehicle, vb=VBConfig(iterations=n, tolerance=0.0))
+        out.append(time_steps(f"vehicle state: VB-ACKF, N = {n} iterations",
+                              (lambda s=s, f=vb: f.step(*s) for s in samples)))
+    return out
+
+
+def bench_aoukf(d: DriveArrays) -> list[StepTiming]:
+    """The vehicle-state AO-UKF of paper 002 (plain UKF, anti-outlier, + GA-BPNN), and our
+    generic UKF against filterpy's on the same 3-DOF model, data and tuning (predict + update
+    of [ay, r]). filterpy calls the model once per sigma point; ours once per step on all 7."""
+    from vehicle_estimation.estimators.state.aoukf import (
+        AOUKFConfig,
+        ThreeDofModel,
+        UnscentedKalmanFilter,
+        VehicleStateAOUKF,
+    )
+    from vehicle_estimation.estimators.state.gabpnn import (
+        default_weights_path,
+        load_correction,
+    )
+    samples = d.state_inputs()
+    out = []
+    weights = default_weights_path(d.vehicle.name)
+    for label, config, correction in (
+            ("AO-UKF: plain UKF (paper 002, 3 states)", AOUKFConfig(filter="ukf"), None),
+            ("AO-UKF: anti-outlier UKF (Sec. 3.3)", AOUKFConfig(), None),
+            ("AO-UKF: anti-outlier UKF + GA-BPNN (Eq. 5)", AOUKFConfig(),
+             load_correction(weights) if weights.exists() else None)):
+        f = VehicleStateAOUKF(d.vehicle, config, correction)
+        out.append(time_steps(label, (lambda s=s, f=f: f.step(*s) for s in samples)))
+
+    config = AOUKFConfig()
+    model = ThreeDofModel.from_params(d.vehicle, config)
+    Q = np.diag(config.q_diag)
+    R = np.diag([config.r_ay, config.r_yaw_rate])
+    x0 = np.array([float(d.at_truth("vx", np.array([samples[0][0]]))[0]), 0.0, 0.0])
+    P0 = np.diag(config.p0_diag)
+    steps = [(t1 - t0, float(z1[0]), float(inputs.steer_angle), z1[1:3])
+             for (t0, _, _), (t1, inputs, z1) in zip(samples[:-1], samples[1:])]
+    ours = UnscentedKalmanFilter(lambda X, dt, ax, delta: model.transition(X, dt, ax, delta),
+                                 lambda X, delta: model.measurement(X, delta), Q,
+                                 np.diag([config.r_ay, config.r_yaw_rate, config.r_wheel_speed]), x0, P0,
+                                 alpha=config.ukf_alpha, beta=config.ukf_beta, kappa=config.ukf_kappa)
+    select = np.array([0, 1])
+
+    def our_step(dt, ax, delta, z):
+        ours.predict(dt, ax, delta)
+        ours.update(z, delta, select=select)
+    out.append(time_steps("UKF, ours (vectorised sigma points): predict + update",
+                          (lambda s=s: our_step(*s) for s in steps)))
+    try:
+        from filterpy.kalman import MerweScaledSigmaPoints
+        from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
+    except ImportError as exc:
+        out.append(StepTiming("filterpy UKF", 0, math.nan, math.nan, f"unavailable: {exc} (pip install filterpy)"))
+        return out
+    points = MerweScaledSigmaPoints(3, alpha=config.ukf_alpha, beta=config.ukf_beta, kappa=config.ukf_kappa)
+    theirs = FilterpyUKF(dim_x=3, dim_z=2, dt=0.01, points=points,
+                         fx=lambda x, dt, ax, delta: model.transition(x, dt, ax, delta),
+                         hx=lambda x, delta: model.measurement(x, delta)[:2])
+    theirs.x, theirs.P, theirs.Q, theirs.R = x0.copy(), P0.copy(), Q.copy(), R.copy()
+
+    def their_step(dt, ax, delta, z):
+        theirs.predict(dt=dt, ax=ax, delta=delta)
+        theirs.update(z, delta=delta)
+    out.append(time_steps("filterpy UKF, same model and data: predict + update",
+                          (lambda s=s: their_step(*s) for s in steps)))
+    return out
+
+
+def _mass_samples(d: DriveArrays, rate_hz: float) -> list[dict[str, float]]:
+    """Window means at ``rate_hz``, as the mass node passes them to its core."""
+    t = d.pt["t"]
+    period = 1.0 / rate_hz
+    edges = np.arange(t[0], t[-1], period)
+    idx = np.searchsorted(t, edges)
+    vx = d.at_truth("vx", t)
+    ax = np.gradient(vx, t)
+    slope = d.at_truth("slope", t)
+    brake = np.interp(t, d.truth["t"], np.sum(d.truth["brake_torque"], axis=1))
+    out = []
+    for a, b in zip(idx[:-1], idx[1:]):
+        if b <= a:
+            continue
+        sl = slice(a, b)
+        out.append(dict(t=float(t[b - 1]), vx=float(vx[sl].mean()), ax=float(ax[sl].mean()),
+                        slope=float(slope[sl].mean()), drive_force=float(d.pt["drive_force"][sl].mean()),
+                        engine_torque=float(d.pt["engine_torque"][sl].mean()),
+                        engine_speed=float(d.pt["engine_speed"][sl].mean()),
+                        engine_load=float(d.pt["load"][sl].mean()), gear=float(d.pt["gear"][b - 1]),
+                        brake_torque=float(brake[sl].mean())))
+    return out
+
+
+def bench_mass(d: DriveArrays) -> list[StepTiming]:
+    from vehicle_estimation.estimators.mass.mass_ffrls import FFRLSMassEstimator
+    from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator
+    out = []
+    samples = _mass_samples(d, 4.0)
+    for name, core in (("mass: RLS (paper 003, 4 Hz windows)", LongitudinalMassEstimator(d.vehicle)),
+                       ("mass: FFRLS (paper 004, 4 Hz windows)", FFRLSMassEstimator(d.vehicle))):
+        out.append(time_steps(name, (lambda s=s, c=core: c.step(s["t"], s["vx"], s["ax"], s["slope"],
+                                                                 **_mass_kwargs(s)) for s in samples),
+                              warmup=5))
+    try:
+        from vehicle_estimation.estimators.mass.ta_aekf import TaAekfMassEstimator
+    except ImportError as exc:   # pragma: no cover
+        out.append(StepTiming("mass: TA-AEKF", 0, math.nan, math.nan, f"unavailable: {exc}"))
+        return out
+    import torch
+    torch.set_num_threads(1)       # as the mass node runs it
+    core = TaAekfMassEstimator(d.vehicle)
+    samples = _mass_samples(d, 100.0)
+    out.append(time_steps("mass: TA-AEKF (paper 000, 100 Hz, incl. transformer inference)",
+                          (lambda s=s: core.step(s["t"], s["vx"], s["ax"], s["slope"], **_mass_kwargs(s))
+                           for s in samples), note="see the p99: the steps with an inference"))
+    return out
+
+
+def _mass_kwargs(s: dict[str, float]) -> dict[str, float]:
+    return {k: s[k] for k in ("drive_force", "engine_torque", "engine_speed", "engine_load", "gear",
+                              "brake_torque")}
+
+
+def run_cores(seconds: float) -> list[StepTiming]:
+    d = DriveArrays(seconds)
+    rows: list[StepTiming] = []
+    for section in (bench_fusion, bench_slope, bench_state, bench_aoukf, bench_mass):
+        print(f"  cores: {section.__name__[6:]} ...", file=sys.stderr, flush=True)
+        rows += section(d)
+    return rows
+
+
+# ============================================================================ processes
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def rss_mib(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return math.nan
+
+
+def _params_files() -> list[Path]:
+    from vehicle_estimation.paths import params_file
+    return [params_file("sedan_d_class"), params_file("estimation")]
+
+
+def _drive_bag(minutes: float, workdir: Path) -> Path:
+    from vehicle_estimation.sim import default_scenario, simulate, write_bag
+    bag = workdir / f"drive_{minutes:g}min"
+    if not bag.exists():
+        print(f"  simulating a {minutes:g}-minute drive ...", file=sys.stderr, flush=True)
+        write_bag(simulate(default_scenario(duration_s=60.0 * minutes, seed=3)), bag)
+    return bag
+
+
+def run_pipeline(minutes: float, workdir: Path) -> dict[str, Any]:
+    from vehicle_estimation.launcher.processes import NodeGroup
+    from vehicle_estimation.launcher.replay import replay
+    bag = _drive_bag(minutes, workdir)
+    samples: dict[str, dict[str, float]] = {}
+    final: dict[str, dict[str, float]] = {}
+    groups: list[NodeGroup] = []
+
+    class MeasuredGroup(NodeGroup):
+        def stop(self, timeout: float = 10.0) -> None:
+            for n in self.nodes:
+                if n.alive():
+                    final[n.spec.name] = {"cpu_s": cpu_seconds(n.process.pid), "rss_mib": rss_mib(n.process.pid)}
+            super().stop(timeout)
+
+    def factory(overrides):
+        group = MeasuredGroup(_params_files(), overrides=overrides)
+        groups.append(group)
+        return group
+
+    def on_tick(bag_s: float) -> None:
+        if "minute_1" not in samples and bag_s >= 60.0 and groups:
+            samples["minute_1"] = {n.spec.name: rss_mib(n.process.pid) for n in groups[0].nodes if n.alive()}
+
+    print(f"  replaying {minutes:g} minutes through the four node processes ...", file=sys.stderr, flush=True)
+    stats = replay(bag, None, factory, progress=sys.stderr.isatty(), tick_callback=on_tick)
+    return {"bag_s": stats.bag_s, "wall_s": stats.wall_s, "rt_factor": stats.bag_s / stats.wall_s,
+            "lossless": stats.lossless, "nodes": final, "rss_minute_1": samples.get("minute_1", {})}
+
+
+def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
+    """Publish ``seconds`` of a drive at real-time rate to live nodes; CPU share and latency."""
+    import rclpy
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from vehicle_estimation.contract import topics
+    from vehicle_estimation.launcher.processes import NodeGroup
+    from vehicle_estimation.launcher.replay import msg_class
+    from vehicle_estimation.ros.runtime.spin import make_executor
+
+    bag = _drive_bag(max(seconds / 60.0, 1.0) if seconds > 60 else 1.0, workdir)
+    group = NodeGroup(_params_files())
+    rclpy.init()
+    node = Node("bench_live_player")
+    reliable = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                          history=HistoryPolicy.KEEP_LAST, depth=1000)
+    sent_wall: dict[tuple[str, int], float] = {}
+    latencies: dict[str, list[float]] = {}
+    # Output -> the input topic whose samples trigger it (its stamp is that input's stamp).
+    triggers = {topics.ODOMETRY: topics.IMU, topics.VEHICLE_STATE: topics.IMU,
+                topics.ROAD_SLOPE_STAMPED: topics.IMU, topics.MASS_STAMPED: topics.POWERTRAIN}
+    lock = threading.Lock()
+
+    def on_output(topic: str, msg: Any) -> None:
+        now = time.monotonic()
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        with lock:
+            t_sent = sent_wall.get((triggers[topic], round(ns / 1000)))
+        if t_sent is not None:
+            latencies.setdefault(topic, []).append(now - t_sent)
+
+    for out_topic, type_name in ((topics.ODOMETRY, "nav_msgs/msg/Odometry"),
+                                 (topics.VEHICLE_STATE, "geometry_msgs/msg/TwistWithCovarianceStamped"),
+                                 (topics.ROAD_SLOPE_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
+                                 (topics.MASS_STAMPED, "geometry_msgs/msg/Vector3Stamped")):
+        node.create_subscription(msg_class(type_name), out_topic,
+                                 lambda m, tp=out_topic: on_output(tp, m), reliable)
+    executor = make_executor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=lambda: _spin_while(executor, rclpy), daemon=True)
+    group.start()
+    result: dict[str, Any] = {}
+    try:
+        typestore = get_typestore(Stores.ROS2_JAZZY)
+        with AnyReader([bag], default_typestore=typestore) as reader:
+            conns = [c for c in reader.connections if c.topic.lstrip("/") in topics.INPUT_TOPICS]
+            pubs = {c.topic: node.create_publisher(msg_class(c.msgtype), c.topic.lstrip("/"), reliable)
+                    for c in conns}
+            spinner.start()
+            deadline = time.monotonic() + 60.0
+            while time.monotonic() < deadline and not all(
+                    p.get_subscription_count() >= 1 for p in pubs.values()):
+                time.sleep(0.1)
+            time.sleep(1.0)
+            cpu0 = {n.spec.name: cpu_seconds(n.process.pid) for n in group.nodes}
+            t_bag0 = None
+            wall0 = time.monotonic()
+            for conn, stamp_ns, data in reader.messages(connections=conns):
+                if t_bag0 is None:
+                    t_bag0 = stamp_ns
+                due = wall0 + (stamp_ns - t_bag0) * 1e-9
+                if (stamp_ns - t_bag0) * 1e-9 > seconds:
+                    break
+                delay = due - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                topic = conn.topic.lstrip("/")
+                with lock:
+                    sent_wall[(topic, round(stamp_ns / 1000))] = time.monotonic()
+                pubs[conn.topic].publish(bytes(data))
+            time.sleep(1.0)
+            wall = time.monotonic() - wall0
+            cpu = {n.spec.name: cpu_seconds(n.process.pid) - cpu0[n.spec.name] for n in group.nodes}
+            result = {"seconds": wall, "cpu_share": {k: v / wall for k, v in cpu.items()},
+                      "cpu_share_total": sum(cpu.values()) / wall,
+                      "latency_ms": {t: {"n": len(v), "p50": 1e3 * float(np.percentile(v, 50)),
+                                         "p99": 1e3 * float(np.percentile(v, 99))}
+                                     for t, v in latencies.items() if v}}
+    finally:
+        group.stop()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return result
+
+
+def _spin_while(executor: Any, rclpy: Any) -> None:
+    while rclpy.ok():
+        try:
+            executor.spin_once(timeout_sec=0.1)
+        except Exception:   # shutdown races
+            return
+
+
+# ============================================================================ report
+def format_report(result: dict[str, Any]) -> str:
+    lines = []
+    if "cores" in result:
+        lines += ["## Per-step cost of the estimator cores", "",
+                  "| core | steps | median [µs] | p99 [µs] | note |", "|---|---|---|---|---|"]
+        for r in result["cores"]:
+            lines.append(f"| {r['name']} | {r['steps']} | {r['median_us']:.1f} | {r['p99_us']:.1f} | {r['note']} |")
+        ratio = result.get("ukf_vs_filterpy")
+        if ratio is not None:
+            ok = "met" if ratio >= TARGETS["ukf_vs_filterpy"] else "missed"
+            lines += ["", f"Our UKF vs filterpy's on the same model and data: {ratio:.2f}x faster per step "
+                          f"(target >= {TARGETS['ukf_vs_filterpy']:g}x: {ok})"]
+        lines.append("")
+    if "pipeline" in result:
+        p = result["pipeline"]
+        ok = "met" if p["rt_factor"] >= TARGETS["replay_rt"] else "missed"
+        lines += ["## Pipeline replay (four node processes)", "",
+                  f"{p['bag_s']:.0f} s of bag in {p['wall_s']:.1f} s: **{p['rt_factor']:.1f}x real time** "
+                  f"(target >= {TARGETS['replay_rt']:g}x: {ok}); lossless: {p['lossless']}", "",
+                  "| node | CPU [s] | CPU per bag second | RSS after 1 min [MiB] | RSS at the end [MiB] | growth |",
+                  "|---|---|---|---|---|---|"]
+        for name, v in p["nodes"].items():
+            r1 = p["rss_minute_1"].get(name, math.nan)
+            growth = v["rss_mib"] / r1 - 1.0 if r1 and math.isfinite(r1) else math.nan
+            lines.append(f"| {name} | {v['cpu_s']:.1f} | {v['cpu_s'] / p['bag_s']:.3f} | {r1:.1f} | "
+                         f"{v['rss_mib']:.1f} | {100 * growth:+.1f} % |")
+        worst = max((v["rss_mib"] / p["rss_minute_1"][n] - 1.0 for n, v in p["nodes"].items()
+                     if p["rss_minute_1"].get(n)), default=math.nan)
+        ok = "met" if worst < TARGETS["memory_growth"] else "missed"
+        lines += ["", f"Largest memory growth from minute 1 to the end: {100 * worst:+.1f} % "
+                      f"(target < {100 * TARGETS['memory_growth']:g} %: {ok})", ""]
+    if "live" in result:
+        lv = result["live"]
+        ok = "met" if lv["cpu_share_total"] < TARGETS["cpu_share"] else "missed"
+        lines += ["## Live, at real-time rate", "",
+                  f"{lv['seconds']:.0f} s; CPU share of one core: " +
+                  ", ".join(f"{k} {100 * v:.1f} %" for k, v in lv["cpu_share"].items()) +
+                  f"; **all nodes {100 * lv['cpu_share_total']:.1f} %** (target < {100 * TARGETS['cpu_share']:g} %: {ok})",
+                  "", "| output (trigger) | samples | p50 [ms] | p99 [ms] |", "|---|---|---|---|"]
+        worst = 0.0
+        for topic, v in lv["latency_ms"].items():
+            lines.append(f"| {topic} | {v['n']} | {v['p50']:.2f} | {v['p99']:.2f} |")
+            worst = max(worst, v["p99"])
+        ok = "met" if worst < TARGETS["latency_p99_ms"] else "missed"
+        lines += ["", f"Worst p99 latency: {worst:.2f} ms (target < {TARGETS['latency_p99_ms']:g} ms: {ok})", ""]
+    return "\n".join(lines)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sections", default="cores,pipeline,live",
+                   help="comma-separated: cores, pipeline, live (default: all)")
+    p.add_argument("--minutes", type=float, default=30.0, help="pipeline drive length [min] (default 30)")
+    p.add_argument("--core-seconds", type=float, default=120.0,
+                   help="simulated drive the cores are timed on [s] (default 120)")
+    p.add_argument("--live-seconds", type=float, default=60.0, help="live run length [s] (default 60)")
+    p.add_argument("--out", default=None, help="also write bench.json and bench.md here")
+    p.add_argument("--workdir", default=None, help="where simulated bags are kept (default: a temporary dir)")
+
+
+def main(args: argparse.Namespace) -> int:
+    sections = [s.strip() for s in args.sections.split(",") if s.strip()]
+    unknown = set(sections) - {"cores", "pipeline", "live"}
+    if unknown:
+        print(f"bench: unknown section(s) {sorted(unknown)}", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory(prefix="vehicle_estimation_bench_") as tmp:
+        workdir = Path(args.workdir) if args.workdir else Path(tmp)
+        workdir.mkdir(parents=True, exist_ok=True)
+        result: dict[str, Any] = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}}
+        if "cores" in sections:
+            rows = run_cores(args.core_seconds)
+            result["cores"] = [dataclasses.asdict(r) for r in rows]
+            ours = next((r for r in rows if r.name.startswith("UKF, ours")), None)
+            theirs = next((r for r in rows if r.name.startswith("filterpy")), None)
+            if ours and theirs and ours.median_us > 0:
+                result["ukf_vs_filterpy"] = theirs.median_us / ours.median_us
+        if "pipeline" in sections:
+            result["pipeline"] = run_pipeline(args.minutes, workdir)
+        if "live" in sections:
+            result["live"] = run_live(args.live_seconds, workdir)
+    report = format_report(result)
+    print(report)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "bench.json").write_text(json.dumps(result, indent=2))
+        (out / "bench.md").write_text(report + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="vehicle-estimation bench", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(parser)
+    raise SystemExit(main(parser.parse_args()))

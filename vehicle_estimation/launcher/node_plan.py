@@ -1,0 +1,312 @@
+"""What each node will do with a bag: its method, the fallbacks that will run and the outputs
+that will stay empty or at their prior, from the bag's topic summary and the layered params.
+
+``inspect`` and ``replay`` print it (:mod:`vehicle_estimation.io.inspect_bag`); the
+defaults it assumes are the nodes' declarations (:data:`NODE_DEFAULTS`, checked by a test).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from vehicle_estimation.contract import topics
+from vehicle_estimation.contract.vehicle import merge_ros_parameters
+from vehicle_estimation.io.bag_survey import InspectError, TopicStats
+from vehicle_estimation.ros import PIPELINE
+
+NODES = tuple(spec.name for spec in PIPELINE)
+
+#: Node parameter defaults, as the nodes declare them (a test checks them against the source):
+#: ``ros/slope_node.py`` (``method``), ``ros/state_node.py`` (``filter``,
+#: ``speed_fallback``), ``ros/mass_node.py`` (``method``, ``accel_source``,
+#: ``speed_source``, ``require_slope``). The ``fusion.*``, ``mass.*`` and ``vehicle.*``
+#: defaults come from their config dataclasses (:func:`_dataclass_defaults`).
+NODE_DEFAULTS: dict[str, dict[str, Any]] = {
+    "fusion": {},
+    "road_slope": {"method": "auto"},
+    "vehicle_state": {"filter": "vbackf", "speed_fallback": True},
+    "mass": {"method": "ffrls", "accel_source": "auto", "speed_source": "fusion", "require_slope": True},
+}
+
+FUSION_OUTPUTS = (topics.ODOMETRY, topics.IMU_COMPENSATED, topics.IMU_BIAS, topics.FUSION_GRADE)
+SLOPE_OUTPUTS = (topics.ROAD_SLOPE, topics.ROAD_SLOPE_STAMPED)
+STATE_OUTPUTS = (topics.VEHICLE_STATE, topics.SIDESLIP, topics.SIDESLIP_STAMPED)
+MASS_OUTPUTS = (topics.MASS, topics.MASS_STAMPED)
+ALL_OUTPUTS = FUSION_OUTPUTS + SLOPE_OUTPUTS + STATE_OUTPUTS + MASS_OUTPUTS
+
+
+# ------------------------------------------------------------------------------ parameters
+def _dataclass_defaults() -> dict[str, dict[str, Any]]:
+    """``fusion.*``, ``mass.*`` and ``vehicle.*`` defaults from the cores' config dataclasses."""
+    import dataclasses
+
+    from vehicle_estimation.contract.vehicle import VehicleParams
+    from vehicle_estimation.estimators.fusion.esekf import FusionConfig
+    from vehicle_estimation.estimators.mass.mass_rls import MassRLSConfig
+
+    def prefixed(prefix: str, obj: Any) -> dict[str, Any]:
+        return {f"{prefix}.{f.name}": getattr(obj, f.name) for f in dataclasses.fields(obj)}
+
+    vehicle = prefixed("vehicle", VehicleParams())
+    return {
+        "fusion": {**vehicle, **prefixed("fusion", FusionConfig())},
+        "road_slope": dict(vehicle),
+        "vehicle_state": dict(vehicle),
+        "mass": {**vehicle, **prefixed("mass", MassRLSConfig())},
+    }
+
+
+def _flatten(values: Any, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if not isinstance(values, dict):
+        return out
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def layered_params(params_files: list[Path]) -> dict[str, dict[str, Any]]:
+    """Effective parameters per node: defaults, then per file ``/**`` and the node's section."""
+    defaults = _dataclass_defaults()
+    merged = {node: {**defaults[node], **NODE_DEFAULTS[node]} for node in NODES}
+    for path in params_files:
+        try:
+            document = yaml.safe_load(Path(path).read_text(encoding="utf-8")) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise InspectError(f"cannot read params file {path}: {exc}") from exc
+        if not isinstance(document, dict):
+            raise InspectError(f"params file {path} is not a mapping of node sections")
+        for node in NODES:
+            merged[node].update(_flatten(merge_ros_parameters(document, node)))
+    return merged
+
+
+# ------------------------------------------------------------------------------ node plan
+def _reported(inputs: dict[str, Any], topic: str, joint: str, field: str) -> bool:
+    info = inputs[topic]
+    return bool(info.get("joints", {}).get(joint, {}).get(field, 0.0) > 0.0)
+
+
+def _usable(inputs: dict[str, Any], topic: str) -> bool:
+    info = inputs[topic]
+    return bool(info["present"] and info.get("type_ok") and info.get("first_stamp") is not None)
+
+
+def _alignment(stats: TopicStats | None, speed: TopicStats | None, fusion: dict[str, Any],
+               have_speed: bool) -> tuple[str, bool]:
+    """(line, aligns) for the fusion filter, from the first samples of the IMU and speed."""
+    threshold = float(fusion.get("fusion.stationary_speed_threshold", 0.05))
+    in_motion = bool(fusion.get("fusion.in_motion_alignment", True))
+    window = float(fusion.get("fusion.in_motion_window_s", 5.0))
+    if have_speed and speed is not None and speed.start_values:
+        start = np.abs(np.asarray(speed.start_values[:100], dtype=float))
+        if np.all(start <= threshold):
+            return "aligns at standstill (vehicle/speed ~ 0 at the start)", True
+        if in_motion:
+            return f"moving from the start: aligns in motion after {window:g} s (needs vehicle/speed)", True
+        return ("moving from the start and fusion.in_motion_alignment is off: "
+                "aligns at the first standstill"), True
+    n = int(fusion.get("fusion.init_stationary_samples", 200))
+    values = np.asarray(stats.start_values[:n], dtype=float) if stats else np.empty((0, 6))
+    if values.shape[0] >= min(n, 2):
+        std = values.std(axis=0)
+        quiet = (np.all(std[:3] <= float(fusion.get("fusion.init_max_accel_std", 0.3)))
+                 and np.all(std[3:] <= float(fusion.get("fusion.init_max_gyro_std", 0.02))))
+        if quiet:
+            return "aligns at standstill (IMU quiet at the start; no vehicle/speed)", True
+    return ("moving from the start and no vehicle/speed: cannot align: every fusion output stays "
+            "empty (unless the car later stands still with a quiet IMU)"), False
+
+
+def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
+          imu: TopicStats | None, speed_stats: TopicStats | None) -> dict[str, Any]:
+    JS, PT = topics.JOINT_STATES, topics.POWERTRAIN
+    have_imu = _usable(inputs, topics.IMU)
+    have_speed = _usable(inputs, topics.SPEED)
+    gnss = inputs[topics.GNSS]
+    have_gnss = _usable(inputs, topics.GNSS) and (gnss.get("no_fix_share") is None or gnss["no_fix_share"] < 1.0)
+    have_js, have_pt = _usable(inputs, JS), _usable(inputs, PT)
+    wheel = {w: have_js and _reported(inputs, JS, w, "velocity") for w in topics.WHEEL_JOINTS}
+    rear_wheels = wheel["wheel_rl"] and wheel["wheel_rr"]
+    all_wheels = all(wheel.values())
+    nodes: dict[str, Any] = {}
+    empty: list[str] = []
+    prior: list[str] = []
+
+    # fusion
+    lines = []
+    if not have_imu:
+        lines.append("no imu/data: the fusion filter does not run; every fusion output stays empty")
+        fusion_ok = False
+    else:
+        if have_gnss:
+            lines.append("GNSS-aided; odom = ENU at the first fix")
+        else:
+            lines.append("no GNSS: dead reckoning, odom = start pose with a free heading; "
+                         "position covariance grows; accelerometer bias held at its prior, "
+                         "which the grade's variance carries")
+        line, fusion_ok = _alignment(imu, speed_stats, params["fusion"], have_speed)
+        lines.append(line)
+        lines.append("CAN speed aids the filter (vehicle/speed)" if have_speed
+                     else "no vehicle/speed: only the vehicle constraints bound the velocity")
+    if not fusion_ok:
+        empty += FUSION_OUTPUTS
+    nodes["fusion"] = {"needs": "imu/data", "runs": fusion_ok, "lines": lines}
+
+    # vehicle_state
+    vs = params["vehicle_state"]
+    lines = []
+    state_vx = "none"
+    if not have_imu:
+        lines.append("no imu/data: the vehicle-state filter does not run")
+        empty += STATE_OUTPUTS
+    else:
+        lines.append(f"filter {vs['filter']}")
+        if rear_wheels or all_wheels:
+            lines.append("vx from the wheel speeds")
+            state_vx = "wheels"
+        elif have_speed and _truthy(vs.get("speed_fallback", True)):
+            lines.append("no wheel speeds: vx from vehicle/speed (automatic fallback, speed_fallback)")
+            state_vx = "speed"
+        else:
+            hint = (" (vehicle/speed is there: set vehicle_state speed_fallback: true to use it)"
+                    if have_speed else "")
+            lines.append(f"no wheel speeds: vx dead-reckoned from ax (drifts){hint}")
+            state_vx = "dead_reckoned"
+        if have_js and _reported(inputs, JS, topics.STEERING_JOINT, "position"):
+            lines.append("steering from steering_wheel")
+        else:
+            lines.append("δ = 0 (no steering)")
+    nodes["vehicle_state"] = {"needs": "imu/data", "runs": have_imu, "vx": state_vx, "lines": lines}
+
+    # road_slope
+    rs = params["road_slope"]
+    method = str(rs.get("method"))
+    lines = [f"method {method}"]
+    slope_ok = False
+    if not have_imu:
+        lines.append("no imu/data: the slope node never publishes")
+        empty += SLOPE_OUTPUTS
+    else:
+        if state_vx in ("wheels", "speed"):
+            speed_line = "speed from the vehicle state's vx and vy"
+        elif fusion_ok:
+            speed_line = "speed from the fusion odometry"
+        elif have_speed:
+            speed_line = "speed from vehicle/speed (vy = 0)"
+        else:
+            speed_line = "speed only from the vehicle state's dead-reckoned vx (drifts)"
+        if method == "fusion_pitch":
+            if fusion_ok:
+                lines.append("fusion pitch grade (estimation/fusion/road_grade)")
+                slope_ok = True
+            else:
+                lines.append("stays at its prior (no fusion grade)")
+                prior += SLOPE_OUTPUTS
+        elif method == "auto":
+            if fusion_ok:
+                lines.append("fusion pitch grade while it is available and converged, else the "
+                             f"IMU + speed observer (cubic_prediction; {speed_line})")
+            else:
+                lines.append(f"no fusion grade: the IMU + speed observer (cubic_prediction; {speed_line})")
+            slope_ok = True
+        else:
+            lines.append(f"imu/data and a speed: {speed_line}")
+            slope_ok = True
+    nodes["road_slope"] = {"needs": "imu/data", "method": method, "converges": slope_ok, "lines": lines}
+
+    # mass
+    ms = params["mass"]
+    method = str(ms.get("method"))
+    lines = [f"method {method}"]
+    if not have_pt:
+        lines.append("no vehicle/powertrain (its trigger): the mass node never publishes")
+        empty += MASS_OUTPUTS
+        nodes["mass"] = {"needs": "vehicle/powertrain", "method": method, "force": None, "lines": lines}
+    else:
+        drive = _reported(inputs, PT, topics.DRIVE_JOINT, "effort")
+        torque = _reported(inputs, PT, topics.ENGINE_JOINT, "effort")
+        engine_speed = _reported(inputs, PT, topics.ENGINE_JOINT, "velocity")
+        gear = _reported(inputs, PT, topics.GEAR_JOINT, "position")
+        load = _reported(inputs, PT, topics.ENGINE_LOAD_JOINT, "position")
+        regression = ms.get("mass.torque_regression") or []
+        n_gears = len(ms.get("vehicle.gear_ratios") or [])
+        force = None
+        if drive:
+            force = "drive"
+            lines.append("propulsion force from the drive effort")
+        elif torque and gear:
+            force = "engine_torque"
+            lines.append("propulsion force from the engine torque (effort) with the reported gear")
+        elif torque and engine_speed and n_gears:
+            force = "engine_torque"
+            lines.append(f"propulsion force from the engine torque (effort), gear predicted from the "
+                         f"engine speed and vehicle.gear_ratios ({n_gears} gears)")
+        elif method == "rls" and load and engine_speed and regression:
+            force = "torque_regression"
+            lines.append("propulsion force from engine_load + engine speed through mass.torque_regression")
+        else:
+            hint = ""
+            if load and engine_speed and not regression:
+                hint = (" (engine_load and engine speed are reported: `vehicle-estimation calibrate` "
+                        "fits mass.torque_regression for method rls)")
+            elif load and engine_speed and method != "rls":
+                hint = " (the torque regression of engine_load + engine speed is used by method rls only)"
+            lines.append(f"no propulsion force: the mass stays at its prior{hint}")
+        undriven = {"front": ("wheel_rl", "wheel_rr"), "rear": ("wheel_fl", "wheel_fr")}.get(
+            str(ms.get("vehicle.driven_axle", "front")), topics.WHEEL_JOINTS)
+        undriven_ok = all(wheel[w] for w in undriven)
+        source = str(ms.get("speed_source"))
+        if source == "fusion" and fusion_ok:
+            speed = "speed from the fusion odometry"
+        elif source == "vehicle_state" and state_vx in ("wheels", "speed", "dead_reckoned"):
+            speed = "speed from the vehicle state's vx" + (" (dead-reckoned: drifts)" if state_vx == "dead_reckoned" else "")
+        elif source == "wheel_speed" and undriven_ok:
+            speed = "speed from the undriven wheels"
+        elif have_speed:
+            speed = f"speed from vehicle/speed (no {source.replace('_', ' ')} speed)"
+        else:
+            speed = None
+        accel_src = str(ms.get("accel_source"))
+        if accel_src in ("auto", "wheel_speed") and undriven_ok:
+            accel = "acceleration from the undriven wheels"
+        elif accel_src == "wheel_speed":
+            accel = None
+        elif accel_src == "vehicle_state" and have_imu:
+            accel = "acceleration from the vehicle state's vx" + (
+                " (dead-reckoned: drifts)" if state_vx == "dead_reckoned" else "")
+        elif accel_src in ("auto", "imu") and fusion_ok:
+            accel = "acceleration from the IMU with the fusion bias"
+        else:
+            accel = None
+        if speed is None or accel is None:
+            missing = " and ".join(w for w, v in (("speed", speed), (f"acceleration ({accel_src})", accel)) if v is None)
+            lines.append(f"no {missing}: the mass stays at its prior")
+        else:
+            lines.append(f"{speed}; {accel}")
+        needs_slope = _truthy(ms.get("require_slope", True))
+        if needs_slope and not slope_ok:
+            lines.append("no converged road slope (require_slope): the mass stays at its prior")
+        if have_js and any(_reported(inputs, JS, w, "effort") for w in topics.WHEEL_JOINTS):
+            lines.append("brake torque from the wheels' effort")
+        else:
+            lines.append("no brake torque: braking is not seen (rls may take braking samples)")
+        if force is None or speed is None or accel is None or (needs_slope and not slope_ok):
+            prior += MASS_OUTPUTS
+        nodes["mass"] = {"needs": "vehicle/powertrain", "method": method, "force": force, "lines": lines}
+    return {"nodes": nodes, "empty_outputs": [t for t in ALL_OUTPUTS if t in empty],
+            "prior_outputs": [t for t in ALL_OUTPUTS if t in prior and t not in empty]}
+
+
+def _truthy(value: Any) -> bool:
+    if isinstance(value, str):
+        return value.strip().lower() in ("true", "1", "yes", "on")
+    return bool(value)

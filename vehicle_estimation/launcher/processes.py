@@ -1,0 +1,119 @@
+"""Start the estimator nodes as OS processes and stop them cleanly.
+
+Each node runs as ``python -m vehicle_estimation.ros.<node> --ros-args ...`` in its own
+process. Children get ``PR_SET_PDEATHSIG`` so that they die with the launcher even if the
+launcher itself is killed with SIGKILL: no orphan keeps publishing into a vehicle stack.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+from vehicle_estimation.ros import PIPELINE, NodeSpec
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+@dataclass
+class NodeProcess:
+    spec: NodeSpec
+    argv: list[str]
+    process: subprocess.Popen | None = None
+    restarts: int = 0
+    log_path: Path | None = None
+
+    def start(self, env: dict[str, str]) -> None:
+        stdout = None
+        if self.log_path is not None:
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            stdout = open(self.log_path, "ab")  # noqa: SIM115 (closed below; the child keeps its copy)
+        try:
+            self.process = subprocess.Popen(
+                self.argv, env=env, stdout=stdout, stderr=subprocess.STDOUT if stdout else None,
+                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        finally:
+            if stdout is not None:
+                stdout.close()
+
+    def alive(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+
+@dataclass
+class NodeGroup:
+    """The four nodes, with their params files, namespace, extra ``-p`` overrides and remappings.
+
+    ``remaps`` are ``(FROM, TO)`` pairs given to every node as ``-r FROM:=TO``, so a vehicle
+    stack's own topic names can be used without a relay.
+    """
+
+    params_files: Sequence[Path]
+    namespace: str = "/"
+    overrides: dict[str, dict[str, str]] = field(default_factory=dict)
+    log_dir: Path | None = None
+    remaps: Sequence[tuple[str, str]] = ()
+    nodes: list[NodeProcess] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        for spec in PIPELINE:
+            argv = [sys.executable, "-m", spec.module, "--ros-args", "-r", f"__ns:={self.namespace}"]
+            for source, target in self.remaps:
+                argv += ["-r", f"{source}:={target}"]
+            for params in self.params_files:
+                argv += ["--params-file", str(params)]
+            for key, value in self.overrides.get(spec.name, {}).items():
+                argv += ["-p", f"{key}:={value}"]
+            log = self.log_dir / f"{spec.name}.log" if self.log_dir else None
+            self.nodes.append(NodeProcess(spec, argv, log_path=log))
+
+    def start(self) -> None:
+        for node in self.nodes:
+            node.start(self._env())
+
+    def restart(self, node: NodeProcess) -> None:
+        """Start ``node`` again (after it exited) with the same command line."""
+        node.start(self._env())
+
+    @staticmethod
+    def _env() -> dict[str, str]:
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        return env
+
+    def check(self) -> list[NodeProcess]:
+        """Nodes that have exited."""
+        return [n for n in self.nodes if not n.alive()]
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """SIGINT, wait, then SIGTERM, then SIGKILL: every child is reaped."""
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
+            running = [n for n in self.nodes if n.alive()]
+            if not running:
+                return
+            for n in running:
+                try:
+                    n.process.send_signal(sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + wait
+            for n in running:
+                try:
+                    n.process.wait(max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    pass

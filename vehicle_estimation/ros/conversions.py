@@ -1,0 +1,188 @@
+"""Message-to-array conversions of the topic contract (no node state, easy to test)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vehicle_estimation.contract import topics
+from vehicle_estimation.ros.runtime.stamps import stamp_to_sec
+
+NAN = float("nan")
+
+# Physical plausibility limits of raw inputs: beyond them a value is a fault, not a reading.
+MAX_SPECIFIC_FORCE = 160.0   # m/s^2, ~16 g: a car IMU saturates well below
+MAX_ANGULAR_RATE = 35.0      # rad/s, ~2000 deg/s
+MAX_SPEED = 100.0            # m/s, 360 km/h (README: 400 km/h is absurd)
+
+
+class MalformedMessage(ValueError):
+    """A message that cannot be read at all (e.g. JointState arrays of the wrong length)."""
+
+
+@dataclass(frozen=True)
+class JointReading:
+    position: float = NAN
+    velocity: float = NAN
+    effort: float = NAN
+
+
+def joint_readings(msg: Any) -> dict[str, JointReading]:
+    """Read a sensor_msgs/JointState into ``{name: JointReading}``.
+
+    Each of position/velocity/effort may be empty (signal not provided) or as long as
+    ``name``; anything else is malformed. Non-finite entries stay NaN: the caller decides
+    what a missing signal means.
+    """
+    names = list(msg.name)
+    n = len(names)
+    arrays = []
+    for field in ("position", "velocity", "effort"):
+        values = list(getattr(msg, field))
+        if len(values) not in (0, n):
+            raise MalformedMessage(f"JointState.{field} has {len(values)} entries for {n} names")
+        arrays.append(values if values else [NAN] * n)
+    out: dict[str, JointReading] = {}
+    for name, p, v, e in zip(names, *arrays):
+        out[name] = JointReading(_finite_or_nan(p), _finite_or_nan(v), _finite_or_nan(e))
+    return out
+
+
+def _finite_or_nan(x: Any) -> float:
+    try:
+        value = float(x)
+    except (TypeError, ValueError):
+        return NAN
+    return value if math.isfinite(value) else NAN
+
+
+@dataclass(frozen=True)
+class ChassisReading:
+    """The chassis signals of ``vehicle/joint_states``."""
+
+    wheel_speeds: np.ndarray          # (4,) rad/s [fl, fr, rl, rr], NaN where missing
+    brake_torques: np.ndarray         # (4,) N m, NaN where missing
+    steering_wheel_angle: float       # rad, NaN if missing
+
+    @property
+    def total_brake_torque(self) -> float:
+        finite = self.brake_torques[np.isfinite(self.brake_torques)]
+        return float(np.sum(finite)) if finite.size else NAN
+
+
+def chassis_reading(msg: Any) -> ChassisReading:
+    joints = joint_readings(msg)
+    wheels = [joints.get(name, JointReading()) for name in topics.WHEEL_JOINTS]
+    steering = joints.get(topics.STEERING_JOINT, JointReading())
+    return ChassisReading(
+        wheel_speeds=np.array([w.velocity for w in wheels]),
+        brake_torques=np.array([w.effort for w in wheels]),
+        steering_wheel_angle=steering.position,
+    )
+
+
+@dataclass(frozen=True)
+class PowertrainReading:
+    engine_speed: float     # rad/s
+    engine_torque: float    # N m
+    engine_load: float      # 0..1 (OBD-II PID 04)
+    gear: float             # gear number, NaN if not reported
+    drive_force: float      # N at the wheels
+
+
+def powertrain_reading(msg: Any) -> PowertrainReading:
+    joints = joint_readings(msg)
+    engine = joints.get(topics.ENGINE_JOINT, JointReading())
+    load = joints.get(topics.ENGINE_LOAD_JOINT, JointReading()).position
+    if math.isfinite(load) and not -0.01 <= load <= 1.01:
+        load = NAN
+    gear = joints.get(topics.GEAR_JOINT, JointReading()).position
+    if math.isfinite(gear) and (gear < 0.5 or gear > 40):
+        gear = NAN
+    return PowertrainReading(
+        engine_speed=engine.velocity,
+        engine_torque=engine.effort,
+        engine_load=load,
+        gear=gear,
+        drive_force=joints.get(topics.DRIVE_JOINT, JointReading()).effort,
+    )
+
+
+def imu_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Specific force and angular rate of a sensor_msgs/Imu (body frame, REP-145)."""
+    a, w = msg.linear_acceleration, msg.angular_velocity
+    return np.array([a.x, a.y, a.z], dtype=float), np.array([w.x, w.y, w.z], dtype=float)
+
+
+def imu_plausible(f: np.ndarray, w: np.ndarray) -> bool:
+    """Finite IMU arrays (see :func:`imu_arrays`) within the physical limits above."""
+    return bool(np.max(np.abs(f)) <= MAX_SPECIFIC_FORCE and np.max(np.abs(w)) <= MAX_ANGULAR_RATE)
+
+
+#: Largest published vx standard deviation [m/s] of a speed that an observer may take as a
+#: measurement. A wheel- or CAN-aided vx has a few cm/s; a vx the state node dead-reckons from
+#: the accelerometer has its growing uncertainty (and carries the very grade and bias an observer
+#: would estimate from it: a closed loop that runs away).
+MAX_MEASURED_SPEED_STD = 0.5
+
+
+def _measured(msg: Any) -> bool:
+    """Whether the twist's vx variance says measured (NaN or <= 0: unknown, taken as measured)."""
+    var = msg.twist.covariance[0]
+    return not (math.isfinite(var) and var > MAX_MEASURED_SPEED_STD ** 2)
+
+
+def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
+    """``(stamp, (stamp, vx))`` of an Odometry or TwistWithCovarianceStamped, for a history.
+
+    Both carry the body-frame forward speed in ``twist.twist.linear.x``. A vx whose variance
+    exceeds :data:`MAX_MEASURED_SPEED_STD` squared (dead reckoning) is no entry.
+    """
+    stamp = msg.header.stamp
+    t = stamp_to_sec(stamp)
+    v = msg.twist.twist.linear.x
+    return (t, (t, v)) if math.isfinite(v) and _measured(msg) else None
+
+
+def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
+    """``(stamp, (stamp, vx, yaw))`` of an Odometry, for a history: the body-frame forward
+    speed and the ENU yaw of ``pose.pose.orientation`` (NaN when the quaternion is not finite
+    or has zero norm; the speed alone is still usable)."""
+    stamp = msg.header.stamp
+    t = stamp_to_sec(stamp)
+    v = msg.twist.twist.linear.x
+    if not math.isfinite(v):
+        return None
+    q = msg.pose.pose.orientation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    n = x * x + y * y + z * z + w * w
+    yaw = math.atan2(2.0 * (w * z + x * y) / n, 1.0 - 2.0 * (y * y + z * z) / n) if n > 0.0 else math.nan
+    return (t, (t, v, yaw if math.isfinite(yaw) else math.nan))
+
+
+def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
+    """``(stamp, (stamp, g_y))`` of an Odometry, for a history: the share of gravity on the body
+    y axis, ``R[2, 1] = sin(roll) cos(pitch)`` of the base_link -> ENU ``pose.pose.orientation``.
+
+    A body-fixed accelerometer reads ``g g_y`` on y on top of the lateral acceleration when the
+    body rolls on its suspension or the road is banked."""
+    stamp = msg.header.stamp
+    t = stamp_to_sec(stamp)
+    q = msg.pose.pose.orientation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    n = x * x + y * y + z * z + w * w
+    if not (math.isfinite(n) and n > 0.5):
+        return None
+    return t, (t, 2.0 * (y * z + w * x) / n)
+
+
+def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
+    """``(stamp, (stamp, vx, vy))`` of a TwistWithCovarianceStamped (the vehicle-state
+    node's output), for a history; none for a dead-reckoned vx (as :func:`forward_speed_entry`)."""
+    stamp = msg.header.stamp
+    t = stamp_to_sec(stamp)
+    vx, vy = msg.twist.twist.linear.x, msg.twist.twist.linear.y
+    return (t, (t, vx, vy)) if math.isfinite(vx) and math.isfinite(vy) and _measured(msg) else None

@@ -1,0 +1,248 @@
+"""Fusion node: IMU + GNSS + CAN speed in the error-state EKF of paper 003 (Sec. 5, Alg. 1).
+
+Subscribes (sensor-data QoS): ``imu/data``, ``gnss/fix``, ``vehicle/speed``.
+Publishes: ``estimation/odometry`` (pose in ENU ``odom``, twist in ``base_link``),
+``estimation/imu`` (bias-compensated IMU with the estimated orientation, at ``imu_rate_hz``) and
+``estimation/fusion/road_grade`` (pitch-derived grade, stamped companion: x = grade [rad,
++uphill], y = variance, z = converged).
+
+The ENU origin of ``odom`` is the first valid GNSS fix; fixes with ``status.status < 0`` are
+ignored and counted. Without GNSS (a car that has none, or before the first fixes show the
+heading) every output is still published once the filter has aligned: ``odom`` is then the
+pose at alignment with a free heading, the position is dead-reckoned and its covariance grows,
+and ``/diagnostics`` says so (``heading source``, ``position source`` and a ``missing`` entry).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu, NavSatFix, NavSatStatus
+
+from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.estimators.common.rotations import rotmat_to_quat
+from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.ros.conversions import MAX_SPEED, imu_arrays, imu_plausible
+from vehicle_estimation.ros.runtime.node import EstimatorNode
+from vehicle_estimation.ros.runtime.spin import run_node
+from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S, sec_to_stamp
+from vehicle_estimation.ros.runtime.upstream import companion
+
+FUSION_GRADE = topics.FUSION_GRADE
+FREE_HEADING = ("gnss/fix: no heading from GNSS yet, so free heading: odom = the pose at alignment, "
+                "position dead-reckoned")
+
+
+class FusionNode(EstimatorNode):
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("fusion", **node_kwargs)
+        # FusionConfig as fusion.* parameters (Tables 2-3 defaults where the paper gives one).
+        config = self.declare_config("fusion", FusionConfig())
+        self.config = config
+        self.odometry_rate = self.declare_float(
+            "odometry_rate_hz", 50.0, "Rate of estimation/odometry and the grade [Hz]", 0.1, 1000.0)
+        self.base_frame = self.declare_str("base_frame", topics.BASE_FRAME, "Body frame id")
+        self.odom_frame = self.declare_str("odom_frame", topics.ODOM_FRAME, "ENU world frame id")
+
+        self.ekf = FusionEKF(config)
+        self.origin: LocalTangentPlane | None = None
+        self._last_odom_t = -math.inf
+        self._last_angular_rate = np.zeros(3)
+
+        self.pub_odom = self.publisher(Odometry, topics.ODOMETRY)
+        self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
+        self.pub_grade = self.publisher(Vector3Stamped, FUSION_GRADE)
+        self.pub_bias = self.publisher(Imu, topics.IMU_BIAS)
+        self.bias_rate = self.declare_float(
+            "bias_rate_hz", 10.0, "Rate of estimation/imu_bias [Hz]", 0.1, 1000.0)
+        # Each publish costs ~0.1 ms of Python and DDS: at the IMU rate this output alone was a
+        # third of the node's CPU. Set it at or above the IMU rate for every sample.
+        self.imu_rate = self.declare_float(
+            "imu_rate_hz", 50.0, "Rate of estimation/imu (compensated IMU) [Hz]", 0.1, 10000.0)
+        self._last_bias_t = -math.inf
+        self._last_imu_pub_t = -math.inf
+        self.subscribe_primary(Imu, topics.IMU, self.on_imu)
+        self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
+        self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
+
+    # -------------------------------------------------------------- inputs
+    def on_imu(self, t: float, msg: Imu) -> None:
+        f, w = imu_arrays(msg)
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
+            self.reject("imu:non_finite")
+            return
+        if not imu_plausible(f, w):
+            self.reject("imu:implausible")
+            return
+        self._last_angular_rate = w
+        if not self.ekf.process_imu(t, f, w):
+            self.reject("imu:out_of_order")
+            return
+        if not self.ekf.navigating:
+            self.set_missing("initialisation: " + self.ekf.status, True)
+            return
+        self.missing.difference_update([m for m in self.missing if m.startswith("initialisation")])
+        # The fallback without GNSS, named in /diagnostics: outputs go on, the pose is relative.
+        self.set_missing(FREE_HEADING, not self.ekf.initialized)
+        if t - self._last_imu_pub_t >= 1.0 / self.imu_rate - STAMP_TOLERANCE_S:
+            self._last_imu_pub_t = t
+            self.publish_imu(t, msg, f, w)
+        if t - self._last_odom_t >= 1.0 / self.odometry_rate - STAMP_TOLERANCE_S:
+            self._last_odom_t = t
+            self.publish_odometry(t)
+        # Right after an in-motion alignment the bias estimate is still rough; with GNSS the
+        # heading follows within seconds, and downstream nodes do better on raw samples until
+        # then (measured: the paper-004 experiment's slope over its first 20 s). Without GNSS
+        # there is nothing to wait for, and the bias goes out from the alignment on.
+        bias_ready = self.ekf.initialized or self.origin is None
+        if bias_ready and t - self._last_bias_t >= 1.0 / self.bias_rate - STAMP_TOLERANCE_S:
+            self._last_bias_t = t
+            self.publish_bias(msg)
+
+    def on_gnss(self, t: float, msg: NavSatFix) -> None:
+        if msg.status.status < NavSatStatus.STATUS_FIX:
+            self.reject("gnss:no_fix")
+            return
+        if not all(math.isfinite(v) for v in (msg.latitude, msg.longitude, msg.altitude)) or abs(msg.latitude) > 90.0 \
+                or abs(msg.longitude) > 180.0:
+            self.reject("gnss:invalid_position")
+            return
+        if self.origin is None:
+            self.origin = LocalTangentPlane(msg.latitude, msg.longitude, msg.altitude)
+            self.note_event(f"ENU origin set at {msg.latitude:.7f}, {msg.longitude:.7f}, "
+                            f"{msg.altitude:.2f} m")
+        enu = np.asarray(self.origin.to_enu(msg.latitude, msg.longitude, msg.altitude), dtype=float)
+        cov = None
+        if msg.position_covariance_type != NavSatFix.COVARIANCE_TYPE_UNKNOWN:
+            c = np.array(msg.position_covariance, dtype=float).reshape(3, 3)
+            if np.all(np.isfinite(c)) and np.all(np.diag(c) > 0.0):
+                cov = c
+        if not self.ekf.update_gnss(t, enu, cov):
+            self.reject("gnss:rejected_by_filter")
+
+    def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
+        v = msg.twist.twist.linear.x
+        if not math.isfinite(v) or abs(v) > MAX_SPEED:
+            self.reject("speed:invalid")
+            return
+        var = msg.twist.covariance[0]
+        variance = var if math.isfinite(var) and var > 0.0 else None
+        if not self.ekf.update_speed(t, v, variance):
+            self.reject("speed:rejected_by_filter")
+
+    # -------------------------------------------------------------- outputs
+    def publish_imu(self, t: float, raw: Imu, f: np.ndarray, w: np.ndarray) -> None:
+        fc, wc = self.ekf.compensated_imu(f, w)
+        out = Imu()
+        # copied field by field: raw may be a message or a ros.cdr view
+        out.header.stamp.sec, out.header.stamp.nanosec = raw.header.stamp.sec, raw.header.stamp.nanosec
+        out.header.frame_id = self.base_frame
+        q = self.ekf.quaternion
+        out.orientation.x, out.orientation.y, out.orientation.z, out.orientation.w = (float(v) for v in q)
+        out.orientation_covariance = _flat3(self.ekf.attitude_covariance)
+        out.linear_acceleration.x, out.linear_acceleration.y, out.linear_acceleration.z = (float(v) for v in fc)
+        out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (float(v) for v in wc)
+        out.linear_acceleration_covariance = list(raw.linear_acceleration_covariance)
+        out.angular_velocity_covariance = list(raw.angular_velocity_covariance)
+        self.publish(self.pub_imu, out)
+
+    def publish_bias(self, raw: Imu) -> None:
+        """The IMU bias estimate in sensor_msgs/Imu form (see ros.runtime.upstream.FusionImuBias)."""
+        ekf = self.ekf
+        out = Imu()
+        # copied field by field: raw may be a message or a ros.cdr view
+        out.header.stamp.sec, out.header.stamp.nanosec = raw.header.stamp.sec, raw.header.stamp.nanosec
+        out.header.frame_id = self.base_frame
+        # orientation: the IMU mounting, imu_link -> base_link (REP-145 IMUs report in
+        # imu_link); consumers rotate bias-corrected samples with it.
+        o = out.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in rotmat_to_quat(ekf.mounting_rotation))
+        mount_cov = np.zeros((3, 3))
+        mount_cov[1:, 1:] = ekf.mounting_covariance
+        out.orientation_covariance = _flat3(mount_cov)
+        a, w = out.linear_acceleration, out.angular_velocity
+        a.x, a.y, a.z = (float(v) for v in ekf.accel_bias)
+        w.x, w.y, w.z = (float(v) for v in ekf.gyro_bias)
+        out.linear_acceleration_covariance = _flat3(ekf.accel_bias_covariance)
+        out.angular_velocity_covariance = _flat3(ekf.gyro_bias_covariance)
+        self.publish(self.pub_bias, out)
+
+    def publish_odometry(self, t: float) -> None:
+        ekf = self.ekf
+        p, v_body, q = ekf.position_enu, ekf.velocity_body, ekf.quaternion
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v_body)) and np.all(np.isfinite(q))):
+            self.reject("fusion:non_finite_state")
+            self.note_event("fusion state became non-finite: resetting")
+            self.reset_estimators()
+            return
+        odom = Odometry()
+        sec_to_stamp(t, odom.header.stamp)
+        odom.header.frame_id = self.odom_frame
+        odom.child_frame_id = self.base_frame
+        odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z = (float(x) for x in p)
+        o = odom.pose.pose.orientation
+        o.x, o.y, o.z, o.w = (float(x) for x in q)
+        pose_cov = np.zeros((6, 6))
+        pose_cov[:3, :3] = ekf.position_covariance
+        pose_cov[3:, 3:] = ekf.attitude_covariance
+        odom.pose.covariance = [float(x) for x in pose_cov.ravel()]
+        lin = odom.twist.twist.linear
+        lin.x, lin.y, lin.z = (float(x) for x in v_body)
+        _, wc = ekf.compensated_imu(np.zeros(3), self._last_angular_rate)
+        ang = odom.twist.twist.angular
+        ang.x, ang.y, ang.z = (float(x) for x in wc)
+        twist_cov = np.zeros((6, 6))
+        twist_cov[:3, :3] = ekf.velocity_body_covariance
+        twist_cov[3:, 3:] = ekf.gyro_bias_covariance
+        odom.twist.covariance = [float(x) for x in twist_cov.ravel()]
+        self.publish(self.pub_odom, odom)
+        grade_var = float(ekf.road_grade_variance)
+        self.publish(self.pub_grade, companion(t, float(ekf.road_grade), grade_var,
+                                               grade_var < (0.5 * math.pi / 180.0) ** 2, self.base_frame))
+
+    # -------------------------------------------------------------- bookkeeping
+    def reset_estimators(self) -> None:
+        self.ekf.reset()
+        self._last_odom_t = -math.inf
+        self._last_bias_t = -math.inf
+        self._last_imu_pub_t = -math.inf
+
+    def status_values(self) -> dict[str, str]:
+        ekf = self.ekf
+        values = {"filter status": ekf.status, "initialized": str(ekf.initialized),
+                  "heading source": "GNSS motion" if ekf.initialized else "free (no GNSS heading yet)",
+                  "position source": "GNSS" if self.origin is not None else "dead reckoning (no GNSS fix)"}
+        if ekf.navigating:
+            values.update({
+                "road grade [deg]": f"{math.degrees(ekf.road_grade):.3f}",
+                "accel bias [m/s^2]": np.array2string(ekf.accel_bias, precision=4),
+                # Without GNSS the bias and the grade are one unobservable sum (FusionConfig).
+                "accel bias estimation": (
+                    "GNSS-aided" if ekf.gnss_aided
+                    else "held through a GNSS outage" if ekf.accel_bias_observed
+                    else "held at its prior (no GNSS yet): the grade is kinematic, its variance "
+                         "carries the prior"),
+                "gyro bias [rad/s]": np.array2string(ekf.gyro_bias, precision=6),
+                "IMU mounting rpy [deg]": np.array2string(np.degrees(ekf.mounting_rpy), precision=3),
+            })
+        for k, v in getattr(ekf, "rejected", {}).items():
+            values[f"filter rejected {k}"] = str(v)
+        for k, v in getattr(ekf, "events", {}).items():     # imu_gap, align_restart, ...
+            values[f"filter event {k}"] = str(v)
+        return values
+
+
+def _flat3(m: np.ndarray) -> list[float]:
+    return [float(x) for x in np.asarray(m, dtype=float).reshape(9)]
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(FusionNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,221 @@
+"""``EstimatorNode``: the base class of the four estimator nodes, wiring the runtime together.
+
+The nodes are thin: they turn messages into arrays, hand them to a core in
+``vehicle_estimation.estimators`` and turn the result back into messages. What surrounds that
+lives in one module per job: ``parameters`` (declaring with descriptors), ``input_queue``
+(stamp order and input checks), ``upstream`` (other nodes' values "as of" a stamp), ``sync``
+(the lock-step replay protocol), ``diagnostics`` and ``spin`` (the executable's loop).
+
+Time: estimators step on header stamps, never wall time. A stamp that jumps back by more than
+``time_jump_reset_s`` (a bag played in a loop, a restarted player) resets the node's estimators
+and histories and says so in the log and in ``/diagnostics``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from typing import Any, Callable
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import Imu
+
+from vehicle_estimation.contract import topics
+from vehicle_estimation.ros.cdr import raw_reader
+from vehicle_estimation.ros.runtime.diagnostics import NodeHealth
+from vehicle_estimation.ros.runtime.input_queue import StampOrderedInputs
+from vehicle_estimation.ros.runtime.parameters import ParameterDeclarations
+from vehicle_estimation.ros.runtime.qos import output_qos, sensor_qos
+from vehicle_estimation.ros.runtime.stamps import stamp_ns, stamp_to_sec
+from vehicle_estimation.ros.runtime.sync import ReplaySyncResponder
+from vehicle_estimation.ros.runtime.upstream import FusionImuBias, UpstreamHistory
+
+
+class EstimatorNode(ParameterDeclarations, Node):
+    """Base class of the four estimator nodes. See the module docstring."""
+
+    def __init__(self, node_name: str, **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        self.health = NodeHealth()
+        self._publishers_by_topic: dict[str, Any] = {}
+        self._subscriptions_by_topic: dict[str, Any] = {}
+
+        self.input_depth = self.declare_int(
+            "qos.input_depth", 200, "Keep-last depth of sensor-data subscriptions", 1, 100000)
+        self.output_depth = self.declare_int(
+            "qos.output_depth", 100, "Keep-last depth of the reliable estimate publishers", 1, 100000)
+        self.sync_enabled = self.declare_bool(
+            "sync.enabled", False,
+            "Deterministic replay: release inputs on the player's sync requests (set by the launcher)")
+        self.release_delay = self.declare_float(
+            "sync.release_delay", 0.0,
+            "Replay only: process inputs stamped before T - release_delay at sync time T [s]", 0.0, 10.0)
+        self.feedback_lag = self.declare_float(
+            "sync.feedback_lag", 0.0,
+            "Lag applied to values fed back from downstream nodes (paper-004 loop) [s]", 0.0, 10.0)
+        self.time_jump_reset_s = self.declare_float(
+            "time_jump_reset_s", 1.0,
+            "A stamp this far behind the last one processed resets the estimators [s]", 0.001, 3600.0)
+        self.diagnostics_period = self.declare_float(
+            "diagnostics_period_s", 1.0, "Period of /diagnostics on the node clock [s]", 0.01, 60.0)
+        self.frozen_imu_samples = self.declare_int(
+            "frozen_imu_samples", 0,
+            "After this many bit-identical IMU samples in a row, further repeats are rejected as a "
+            "frozen sensor (a real IMU's noise never repeats; a hung driver republishes); 0: off", 0, 100000)
+        self.inputs = StampOrderedInputs(self, self.time_jump_reset_s, self.frozen_imu_samples)
+
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(self.diagnostics_period, self._publish_diagnostics)
+        self._sync: ReplaySyncResponder | None = None
+        if self.sync_enabled:
+            self._sync = ReplaySyncResponder(
+                self, rx=self.health.rx, tx=self.health.tx, publishers=self._publishers_by_topic,
+                subscriptions=self._subscriptions_by_topic, release=self.inputs.release,
+                on_clock_jump=self._on_replay_clock_jump, release_delay_s=self.release_delay,
+                time_jump_reset_s=self.time_jump_reset_s)
+
+    # ------------------------------------------------------------------ topics
+    def publisher(self, msg_type: Any, topic: str) -> Any:
+        pub = self.create_publisher(msg_type, topic, output_qos(self.output_depth))
+        self._publishers_by_topic[pub.topic_name] = pub
+        return pub
+
+    def publish(self, pub: Any, msg: Any) -> None:
+        pub.publish(msg)
+        self.health.tx[pub.topic_name] += 1
+
+    def subscribe_primary(self, msg_type: Any, topic: str,
+                          handler: Callable[[float, Any], None],
+                          stamp_of: Callable[[Any], float] | None = None) -> Any:
+        """Subscribe a sensor input that is processed in stamp order (sensor-data QoS)."""
+        stamp_of = stamp_of or (lambda m: stamp_to_sec(m.header.stamp))
+        holder: dict[str, str] = {}
+        read = raw_reader(msg_type)
+        rx = self.health.rx
+
+        def on_message(msg: Any) -> None:
+            name = holder["topic"]
+            rx[name] += 1
+            try:
+                if read is not None:
+                    msg = read(msg)
+                t = stamp_of(msg)
+            except Exception:  # malformed message: no usable stamp
+                self.reject(f"{name}:bad_stamp")
+                return
+            # 0 s is a valid stamp: simulators, CSV exports and many loggers start there.
+            if not math.isfinite(t) or t < 0.0:
+                self.reject(f"{name}:bad_stamp")
+                return
+            ns = stamp_ns(msg.header.stamp) if hasattr(msg, "header") else int(round(t * 1e9))
+            self.inputs.push(ns, name, handler, msg)
+            self._release_available()
+
+        sub = self.create_subscription(msg_type, topic, on_message, sensor_qos(self.input_depth),
+                                       raw=read is not None)
+        holder["topic"] = sub.topic_name
+        rx[sub.topic_name] += 0
+        self._subscriptions_by_topic[sub.topic_name] = sub
+        return sub
+
+    def subscribe_imu_bias(self, bias: FusionImuBias) -> Any:
+        """Subscribe the fusion node's IMU bias estimate (see :class:`FusionImuBias`)."""
+        return self.subscribe_upstream(Imu, topics.IMU_BIAS, bias.history, bias.convert)
+
+    def subscribe_upstream(self, msg_type: Any, topic: str, history: UpstreamHistory,
+                           convert: Callable[[Any], tuple[float, Any] | None]) -> Any:
+        """Subscribe an estimate of another node into a stamp-indexed history (reliable QoS)."""
+        holder: dict[str, str] = {}
+        read = raw_reader(msg_type)
+        rx = self.health.rx
+
+        def on_message(msg: Any) -> None:
+            name = holder["topic"]
+            rx[name] += 1
+            if self._sync is not None:
+                self._sync.schedule_reack()
+            try:
+                item = convert(msg if read is None else read(msg))
+            except Exception:
+                item = None
+            if item is None or not math.isfinite(item[0]):
+                self.reject(f"{name}:invalid")
+                return
+            history.add(*item)
+
+        sub = self.create_subscription(msg_type, topic, on_message, output_qos(self.output_depth),
+                                       raw=read is not None)
+        holder["topic"] = sub.topic_name
+        rx[sub.topic_name] += 0
+        self._subscriptions_by_topic[sub.topic_name] = sub
+        return sub
+
+    def _release_available(self) -> None:
+        if self._sync is None:
+            self.inputs.release(math.inf)
+        else:
+            self._sync.try_complete()
+
+    def _on_replay_clock_jump(self, text: str) -> None:
+        self.note_event(text)
+        self.health.resets += 1
+        self.inputs.drop_all()
+        self.reset_estimators()
+
+    def on_time_jump(self, text: str) -> None:
+        """A topic's stamps went back (input queue): reset, and say so."""
+        self.note_event(text)
+        self.health.resets += 1
+        self.reset_estimators()
+
+    # ------------------------------------------------------------------ bookkeeping
+    @property
+    def rejected(self) -> Counter[str]:
+        return self.health.rejected
+
+    @property
+    def events(self) -> deque[str]:
+        return self.health.events
+
+    @property
+    def resets(self) -> int:
+        return self.health.resets
+
+    @property
+    def missing(self) -> set[str]:
+        """Inputs this node runs without (a fallback is active); ``/diagnostics`` names them."""
+        return self.health.missing
+
+    @property
+    def max_queue(self) -> int:
+        return self.inputs.max_len
+
+    def reject(self, reason: str) -> None:
+        self.health.rejected[reason] += 1
+        self.get_logger().warn(f"rejected input ({reason}); {self.health.rejected[reason]} so far",
+                               throttle_duration_sec=5.0)
+
+    def note_event(self, text: str) -> None:
+        self.health.events.append(text)
+        self.get_logger().info(text)
+
+    def set_missing(self, what: str, missing: bool) -> None:
+        self.health.set_missing(what, missing)
+
+    def reset_estimators(self) -> None:
+        """Subclasses reset cores and histories here (bag loop, restarted source)."""
+
+    def status_values(self) -> dict[str, str]:
+        """Subclasses add estimator state for /diagnostics."""
+        return {}
+
+    def status_summary(self) -> tuple[int, str]:
+        """Level and one-line message for /diagnostics; subclasses refine."""
+        return self.health.summary()
+
+    def _publish_diagnostics(self) -> None:
+        level, message = self.status_summary()
+        self._diag_pub.publish(self.health.array(
+            self.get_name(), level, message, len(self.inputs), self.inputs.max_len, self.status_values(),
+            self.get_clock().now().to_msg()))

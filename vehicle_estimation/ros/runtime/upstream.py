@@ -1,0 +1,147 @@
+"""Values from other nodes, looked up "as of" a stamp: histories, the companion encoding, the IMU bias.
+
+A node never uses "whatever arrived last" from another node: that depends on scheduling. It
+keeps each upstream topic in an :class:`UpstreamHistory` and asks for the value at the stamp of
+the sensor message it is processing (minus a lag in replay, see ``sync``).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import Vector3Stamped
+
+from vehicle_estimation.estimators.common.rotations import quat_to_rotmat
+from vehicle_estimation.ros.runtime.stamps import sec_to_stamp, stamp_to_sec
+
+#: An upstream value older than this, at the stamp it is wanted for, is missing [s].
+STALE_AFTER_S = 1.0
+
+
+def is_fresh(t: float, stamp: float) -> bool:
+    """Whether a value stamped ``stamp`` still stands for stamp ``t``."""
+    return t - stamp <= STALE_AFTER_S
+
+
+@dataclass
+class StampedValue:
+    """A value from another node: estimate, variance, converged flag, at a stamp."""
+
+    stamp: float
+    value: float
+    variance: float
+    converged: bool
+
+
+class UpstreamHistory:
+    """Stamp-indexed recent values of one upstream topic, looked up "as of" a stamp.
+
+    ``at(t)`` returns the newest entry with stamp <= t - lag. Entries are kept for
+    ``horizon_s`` seconds of stamp time. Out-of-order arrivals are inserted in order.
+    """
+
+    def __init__(self, lag_s: float = 0.0, horizon_s: float = 5.0) -> None:
+        self.lag_s = lag_s
+        self.horizon_s = horizon_s
+        self._stamps: list[float] = []
+        self._values: list[Any] = []
+        self.received = 0
+
+    def add(self, stamp: float, value: Any) -> None:
+        self.received += 1
+        i = bisect.bisect_right(self._stamps, stamp)
+        self._stamps.insert(i, stamp)
+        self._values.insert(i, value)
+        cutoff = self._stamps[-1] - self.horizon_s
+        if self._stamps[0] < cutoff:
+            k = bisect.bisect_left(self._stamps, cutoff)
+            del self._stamps[:k]
+            del self._values[:k]
+
+    def at(self, t: float) -> Any | None:
+        i = bisect.bisect_right(self._stamps, t - self.lag_s)
+        return self._values[i - 1] if i > 0 else None
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._values.clear()
+
+    @property
+    def latest_stamp(self) -> float | None:
+        return self._stamps[-1] if self._stamps else None
+
+
+def companion(stamp: float, value: float, variance: float, converged: bool,
+              frame_id: str = "base_link") -> Vector3Stamped:
+    """The stamped companion of a scalar estimate: x = value, y = variance, z = converged (1/0)."""
+    msg = Vector3Stamped()
+    sec_to_stamp(stamp, msg.header.stamp)
+    msg.header.frame_id = frame_id
+    msg.vector.x = float(value)
+    msg.vector.y = float(variance)
+    msg.vector.z = 1.0 if converged else 0.0
+    return msg
+
+
+def companion_value(msg: Vector3Stamped) -> tuple[float, StampedValue] | None:
+    """A companion message as a history entry; None when its value or variance is not finite."""
+    t = stamp_to_sec(msg.header.stamp)
+    v = msg.vector
+    if not (math.isfinite(v.x) and math.isfinite(v.y)):
+        return None
+    return t, StampedValue(t, v.x, v.y, v.z > 0.5)
+
+
+class FusionImuBias:
+    """Bias correction of raw IMU samples with the fusion node's estimate.
+
+    The fusion node publishes its accelerometer and gyro bias estimates on
+    ``estimation/imu_bias`` (sensor_msgs/Imu: ``linear_acceleration`` = accelerometer bias,
+    ``angular_velocity`` = gyro bias, both in the IMU's own frame, with their covariances;
+    ``orientation`` = the IMU mounting, imu_link -> base_link) at a low rate: a bias changes
+    over minutes, so 10 Hz is plenty and costs downstream nodes almost nothing.
+    :meth:`correct` removes the bias and rotates the sample into base_link. Without fusion
+    (not started, not yet initialised) samples pass through unchanged and :attr:`valid` is
+    False.
+    """
+
+    def __init__(self) -> None:
+        self.history = UpstreamHistory(horizon_s=5.0)
+        self.valid = False
+
+    @staticmethod
+    def convert(msg: Any) -> tuple[float, Any] | None:
+        t = stamp_to_sec(msg.header.stamp)
+        ba = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+        bg = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+        if not (np.all(np.isfinite(ba)) and np.all(np.isfinite(bg))):
+            return None
+        o = msg.orientation
+        q = np.array([o.x, o.y, o.z, o.w], dtype=float)
+        norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else 0.0
+        # A publisher without a mounting leaves the quaternion at zero: identity.
+        mount = quat_to_rotmat(q / norm) if norm > 0.5 else np.eye(3)
+        var = msg.linear_acceleration_covariance[0]
+        return t, (ba, bg, mount, var if math.isfinite(var) and var > 0.0 else 0.0)
+
+    def correct(self, t: float, f: Any, w: Any) -> tuple[Any, Any]:
+        entry = self.history.at(t)
+        self.valid = entry is not None
+        if entry is None:
+            return f, w
+        ba, bg, mount, _ = entry
+        return mount @ (f - ba), mount @ (w - bg)
+
+    def accel_x_variance_at(self, t: float) -> float | None:
+        """The along-track bias variance [m^2/s^4] published for stamp ``t``, None without the
+        fusion."""
+        entry = self.history.at(t)
+        return None if entry is None else entry[3]
+
+    def clear(self) -> None:
+        self.history.clear()
+        self.valid = False

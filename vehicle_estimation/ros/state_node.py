@@ -1,0 +1,433 @@
+"""Vehicle-state node: vx, vy, yaw rate and sideslip on the paper-004 4-wheel model.
+
+Filter (parameter ``filter``); ``vbackf`` and ``ckf`` on the paper-004 4-wheel model with
+Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14, ``aoukf`` on the paper-002 3-DOF model:
+
+* ``vbackf``: the variational Bayesian adaptive cubature Kalman filter of paper 004 Sec. 4
+  (Eqs. 10-13): the measurement-noise covariance is learnt online (inverse-Wishart), so
+  time-varying sensor noise (Eq. 34) does not mis-weight the IMU. Its parameters:
+  ``vbackf.*``.
+* ``ckf``: the plain cubature Kalman filter, the contrast of paper 004 Sec. 7.
+* ``aoukf``: the adaptive anti-outlier UKF of paper 002 (Sec. 3.3, Eqs. 6-7) on the 3-DOF
+  Magic-Formula model of its Sec. 2, with the GA-BPNN output correction of Eq. 5
+  (``aoukf_correction``: ``auto`` loads the shipped weights for ``vehicle.name`` when the
+  package has them, a path loads that file, empty turns it off). Its tuning: ``aoukf.*``
+  (``aoukf.filter`` ``ukf`` / ``ekf`` gives the paper's contrasts). Gross errors (spikes,
+  bursts, a frozen sensor) are down-weighted or replaced; ``/diagnostics`` counts them.
+
+Shared tuning of ``ckf``/``vbackf`` (Sec. 7.1 defaults): ``p0_diag``, ``q_diag`` (per ``tau`` =
+0.01 s) and ``r_diag`` (the initial R for ``vbackf``).
+
+Subscribes (sensor-data QoS): ``imu/data`` (measurement [ax, ay, r], the trigger),
+``vehicle/joint_states`` (steering-wheel angle, four wheel speeds). From other nodes:
+``estimation/imu_bias`` (fusion IMU bias), ``estimation/odometry`` (the fusion attitude, for
+``roll_compensation``), ``estimation/road_slope_stamped`` and
+``estimation/mass_stamped`` (paper 004 Fig. 1: state <- slope, mass). Before the slope or
+mass arrive the filter uses slope 0 and the vehicle's nominal mass, and says so in
+``/diagnostics``.
+
+Wheel speeds missing: the inputs carry NaN wheel speeds and the core propagates vx with the
+measured longitudinal acceleration instead of the wheel-slip tyre forces (see
+``estimators.state.vehicle_model``); ``vehicle/speed`` (CAN/OBD-II speed), when it is there, then updates vx
+directly (``speed_fallback``), so vx does not drift with the accelerometer bias. Steering missing: the sample is used with the last steering angle
+for at most ``stale_input_s``, then the filter runs on the IMU alone (δ = 0) and
+diagnostics report it.
+
+Body roll: the models take the measured lateral acceleration for tyre force over mass, but a
+body-fixed IMU also reads ``g sin(roll) cos(pitch)`` on y whenever the body rolls on its
+suspension or the road is banked (~0.7 m/s^2 at 4 deg of roll). With ``roll_compensation``
+(on by default) it is removed with the fusion's attitude, which integrates the body's roll
+rate; before the fusion has aligned the samples pass uncorrected, and ``/diagnostics``
+(``roll compensation``) says which.
+
+Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped in
+``base_link``: linear.x = vx, linear.y = vy, angular.z = yaw rate; covariance rows/cols
+0, 1, 5), ``estimation/sideslip`` (std_msgs/Float64, rad) and ``estimation/sideslip_stamped``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64
+
+from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
+from vehicle_estimation.estimators.state.ckf import VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.estimators.state.gabpnn import (
+    BPCorrection,
+    default_weights_path,
+    load_correction,
+)
+from vehicle_estimation.estimators.state.vbackf import VBConfig, VehicleStateVBACKF
+from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
+from vehicle_estimation.ros.conversions import (
+    MAX_SPEED,
+    MalformedMessage,
+    chassis_reading,
+    imu_arrays,
+    imu_plausible,
+    lateral_gravity_entry,
+)
+from vehicle_estimation.ros.runtime.node import EstimatorNode
+from vehicle_estimation.ros.runtime.parameters import ParameterError
+from vehicle_estimation.ros.runtime.spin import run_node
+from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S, sec_to_stamp
+from vehicle_estimation.ros.runtime.upstream import (
+    FusionImuBias,
+    UpstreamHistory,
+    companion,
+    companion_value,
+    is_fresh,
+)
+
+FILTERS = ("ckf", "vbackf", "aoukf")
+#: Where vx comes from, for /diagnostics ("vx source").
+VX_FROM_WHEELS = "wheel speeds"
+VX_FROM_SPEED = "vehicle/speed (fallback: no wheel speeds)"
+VX_DEAD_RECKONED = "dead reckoning from ax (no wheel speeds, no vehicle/speed): drifts"
+
+#: How long the filter waits for wheel speeds to start from before it starts from initial_vx [s].
+WHEEL_WAIT_S = 1.0
+#: A road grade varies over a hill's length: at highway speed ~5 s. The correlation time of the
+#: acceleration error an unknown grade causes (see ``missing_slope_std_deg``) [s].
+GRADE_CORRELATION_S = 5.0
+#: A wheel faster than this x MAX_SPEED (allowing for spin) is an absurd reading.
+WHEEL_SPIN_MARGIN = 1.5
+
+
+class StateNode(EstimatorNode):
+    def __init__(self, **node_kwargs) -> None:
+        super().__init__("vehicle_state", **node_kwargs)
+        self.vehicle = self.declare_vehicle()
+        self.filter_name = self.declare_str("filter", "vbackf", "Vehicle-state filter", FILTERS)
+        self.rate = self.declare_float("publish_rate_hz", 100.0, "Output rate [Hz]", 0.1, 1000.0)
+        self.filter_rate = self.declare_float(
+            "filter_rate_hz", 100.0,
+            "Filter step rate: IMU samples in between are averaged (paper 004: tau = 0.01 s); "
+            "at or above the IMU rate every sample is a step, and r_diag is the noise of the "
+            "averaged measurement", 1.0, 10000.0)
+        self.stale_input_s = self.declare_float(
+            "stale_input_s", 0.5, "Chassis signals older than this count as missing [s]", 0.01, 10.0)
+        self.initial_vx = self.declare_float(
+            "initial_vx", 0.0, "Initial longitudinal speed of the filter [m/s] (paper 004: 80/3.6)",
+            -100.0, 100.0)
+        self.init_from_wheels = self.declare_bool(
+            "init_vx_from_wheel_speeds", True,
+            "Start vx from the rear wheel speeds when available (else from initial_vx)")
+        paper = VehicleStateConfig()
+        self.p0_diag = self.declare_float_array(
+            "p0_diag", list(np.diag(paper.P0)), "Initial covariance diagonal of [vx, vy, r, ax, ay] (Sec. 7.1)")
+        # Sec. 7.1's Q = 0.1 I read as a density (Q tau per 0.01 s step): per step it makes the
+        # predicted measurement covariance ~100 R, the gain ~1 and R unidentifiable, so the
+        # VB-ACKF could learn nothing (see the README).
+        self.q_diag = self.declare_float_array(
+            "q_diag", list(np.diag(paper.Q) * paper.nominal_dt),
+            "Process noise diagonal per 0.01 s step (Sec. 7.1's 0.1 I as a density)")
+        self.r_diag = self.declare_float_array(
+            "r_diag", list(np.diag(paper.R)), "Measurement noise diagonal of [ax, ay, r] (Sec. 7.1)")
+        self.speed_fallback = self.declare_bool(
+            "speed_fallback", True,
+            "Without wheel speeds, update vx with vehicle/speed (else vx is dead-reckoned from ax)")
+        self.roll_compensation = self.declare_bool(
+            "roll_compensation", True,
+            "Remove from the measured lateral acceleration the gravity that the body's roll (on "
+            "its suspension, and the road's bank) puts into it, with the fusion attitude "
+            "(estimation/odometry); without it the tyre model reads g sin(roll) as lateral force")
+        self.speed_fallback_std = self.declare_float(
+            "speed_fallback_std", 0.3,
+            "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
+        self.vb_config = (self.declare_config("vbackf", VBConfig())
+                          if self.filter_name == "vbackf" else None)
+        self.aoukf_config: AOUKFConfig | None = None
+        self.correction: BPCorrection | None = None
+        if self.filter_name == "aoukf":
+            # initial_vx / init_vx_from_wheel_speeds are the node's, for every filter.
+            self.aoukf_config = self.declare_config(
+                "aoukf", AOUKFConfig(initial_vx=self.initial_vx, init_vx_from_wheel_speeds=self.init_from_wheels),
+                exclude=("initial_vx", "init_vx_from_wheel_speeds"))
+            self.correction = self._load_correction(self.declare_str(
+                "aoukf_correction", "auto",
+                "GA-BPNN output correction (paper 002 Eq. 5) for filter aoukf: 'auto' = the "
+                "package's weights for vehicle.name if it ships them (else none), a path = that "
+                ".npz file, '' = none"))
+        self.core = self._make_core()
+        self.bias = FusionImuBias()
+        self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
+        self.mass = UpstreamHistory(lag_s=self.feedback_lag)
+        self.attitude = UpstreamHistory()
+        self.roll_source = "off" if not self.roll_compensation else "none yet (no fusion attitude)"
+        self.chassis = None
+        self.chassis_t = -math.inf
+        self.speed_t = -math.inf      # stamp of the last vehicle/speed sample
+        self._last_pub = -math.inf
+        self._steer = 0.0
+        self._first_imu_t: float | None = None
+        self._vx_measured = False     # by wheel speeds or vehicle/speed at the last filter step
+        self._z_sum = np.zeros(3)
+        self._z_count = 0
+        self._last_step_t = -math.inf
+        missing_slope_std = math.radians(self.declare_float(
+            "missing_slope_std_deg", 2.0,
+            "Without a slope estimate the filter assumes a level road and adds the acceleration "
+            "error of a grade of this std to the vx process noise [deg]", 0.0, 30.0))
+        # Without the slope the grade's g sin(theta) is an unknown, correlated acceleration
+        # error on vx: its white-noise equivalent density 2 sigma^2 tau [(m/s^2)^2 s].
+        self.missing_slope_noise_density = (
+            2.0 * (self.vehicle.gravity * math.sin(missing_slope_std)) ** 2 * GRADE_CORRELATION_S)
+        dead_reckoning_std = self.declare_float(
+            "dead_reckoning_accel_std", 0.35,
+            "While no wheel speed or vehicle/speed measures vx, the filter integrates the "
+            "accelerometer, whose bias and grade error no measurement checks: this acceleration "
+            "error std goes into the vx process noise [m/s^2]", 0.0, 5.0)
+        # Same white-noise equivalent: the published vx variance then grows as the drift does,
+        # and the slope and mass nodes stop taking that vx as a speed (MAX_MEASURED_SPEED_STD).
+        self.dead_reckoning_noise_density = 2.0 * dead_reckoning_std ** 2 * GRADE_CORRELATION_S
+        self.min_dynamic_speed = self.declare_float(
+            "sideslip_min_speed", 3.0,
+            "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
+
+        self.pub_state = self.publisher(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
+        self.pub_beta = self.publisher(Float64, topics.SIDESLIP)
+        self.pub_beta_stamped = self.publisher(Vector3Stamped, topics.SIDESLIP_STAMPED)
+        self.subscribe_primary(Imu, topics.IMU, self.on_imu)
+        self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
+        self.speed: tuple[float, float, float] | None = None     # (stamp, vx, variance), unused yet
+        self.vx_source = VX_FROM_WHEELS if self.speed_fallback else "wheel speeds, else dead reckoning from ax"
+        if self.speed_fallback:
+            self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
+        self.subscribe_imu_bias(self.bias)
+        if self.roll_compensation:
+            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.attitude, lateral_gravity_entry)
+        self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
+        self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
+
+    def _load_correction(self, setting: str) -> BPCorrection | None:
+        if not setting:
+            return None
+        path = default_weights_path(self.vehicle.name) if setting == "auto" else setting
+        if setting == "auto" and not path.exists():
+            self.note_event(f"no shipped GA-BPNN weights for vehicle '{self.vehicle.name}': "
+                            "AO-UKF without output correction (train some with train-gabpnn)")
+            return None
+        try:
+            return load_correction(path)
+        except ValueError as exc:
+            raise ParameterError(f"parameter 'aoukf_correction': {exc}") from exc
+
+    def _make_core(self) -> VehicleStateCKF | VehicleStateAOUKF:
+        if self.aoukf_config is not None:
+            try:
+                correction = self.correction.fresh() if self.correction is not None else None
+                return VehicleStateAOUKF(self.vehicle, self.aoukf_config, correction)
+            except (TypeError, ValueError) as exc:
+                raise ParameterError(f"filter 'aoukf': {exc}") from exc
+        for name, values, n in (("p0_diag", self.p0_diag, 5), ("q_diag", self.q_diag, 5),
+                                ("r_diag", self.r_diag, 3)):
+            if len(values) != n or not all(math.isfinite(v) and v > 0.0 for v in values):
+                raise ParameterError(f"parameter '{name}' must be {n} positive numbers, got {values}")
+        try:
+            config = VehicleStateConfig(P0=np.diag(self.p0_diag), Q=np.diag(self.q_diag),
+                                        R=np.diag(self.r_diag), initial_vx=self.initial_vx,
+                                        init_vx_from_wheel_speeds=self.init_from_wheels)
+            config.validate()
+            if self.filter_name == "vbackf":
+                return VehicleStateVBACKF(self.vehicle, config, self.vb_config)
+            return VehicleStateCKF(self.vehicle, config)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"filter '{self.filter_name}': {exc}") from exc
+
+    def on_joint_states(self, t: float, msg: JointState) -> None:
+        try:
+            reading = chassis_reading(msg)
+        except MalformedMessage:
+            self.reject("joint_states:malformed")
+            return
+        wheels = reading.wheel_speeds
+        if np.any(np.abs(wheels[np.isfinite(wheels)]) * self.vehicle.wheel_radius > WHEEL_SPIN_MARGIN * MAX_SPEED):
+            self.reject("joint_states:implausible")
+            return
+        self.chassis = reading
+        self.chassis_t = t
+
+    def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
+        v, var = msg.twist.twist.linear.x, msg.twist.covariance[0]
+        if not math.isfinite(v) or abs(v) > MAX_SPEED:
+            self.reject("speed:invalid")
+            return
+        if not (math.isfinite(var) and var > 0.0):
+            var = self.speed_fallback_std ** 2
+        self.speed = (t, v, var)
+        self.speed_t = t
+
+    def _update_speed_fallback(self, t: float, rear_wheels_measured: bool) -> None:
+        """vx from vehicle/speed when the wheel speeds are missing (each sample used once)."""
+        if rear_wheels_measured:
+            self.vx_source = VX_FROM_WHEELS
+            self.set_missing("wheel speeds and vehicle/speed", False)
+            return
+        # The source is judged by the last sample's age, not by whether a sample is still
+        # unused: at a CAN rate below the filter's there are steps with none, by design.
+        fresh = t - self.speed_t <= self.stale_input_s
+        self.vx_source = VX_FROM_SPEED if fresh else VX_DEAD_RECKONED
+        self.set_missing("wheel speeds and vehicle/speed", math.isfinite(self.speed_t) and not fresh)
+        if fresh and self.speed is not None and self.core.update_speed(self.speed[1], self.speed[2]):
+            self.speed = None
+
+    def _roll_gravity(self, t: float) -> float:
+        """The gravity on the body y axis at ``t`` [m/s^2] (0 without a fresh fusion attitude)."""
+        if not self.roll_compensation:
+            return 0.0
+        item = self.attitude.at(t)
+        if item is None or not is_fresh(t, item[0]):
+            self.roll_source = "none (no fresh fusion attitude): lateral acceleration uncorrected"
+            return 0.0
+        self.roll_source = "fusion attitude"
+        return self.vehicle.gravity * item[1]
+
+    def _upstream(self, history: UpstreamHistory, t: float, default: float, what: str) -> float:
+        item = history.at(t)
+        missing = item is None or not is_fresh(t, item.stamp)
+        self.set_missing(what, missing)
+        return default if missing else item.value
+
+    def on_imu(self, t: float, msg: Imu) -> None:
+        f, w = imu_arrays(msg)
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
+            self.reject("imu:non_finite")
+            return
+        if not imu_plausible(f, w):
+            self.reject("imu:implausible")
+            return
+        f, w = self.bias.correct(t, f, w)
+        fresh = self.chassis is not None and t - self.chassis_t <= self.stale_input_s
+        self.set_missing("vehicle/joint_states", not fresh)
+        if fresh:
+            steer = self.chassis.steering_wheel_angle / self.vehicle.steering_ratio
+            wheels = self.chassis.wheel_speeds
+        else:
+            steer, wheels = 0.0, np.full(4, np.nan)
+        if not math.isfinite(steer):
+            steer = 0.0
+        self._steer = steer
+        slope = self._upstream(self.slope, t, math.nan, "road slope")
+        # Without the slope the filter assumes a level road and adds the grade's acceleration
+        # error as process noise, so the variance says the estimate knows less.
+        self.core.extra_vx_noise_density = (
+            (self.missing_slope_noise_density if math.isnan(slope) else 0.0)
+            + (0.0 if self._vx_measured or not self.core.initialised else self.dead_reckoning_noise_density))
+        inputs = VehicleInputs(
+            steer_angle=steer,
+            wheel_speeds=wheels,
+            slope=0.0 if math.isnan(slope) else slope,
+            mass=self._upstream(self.mass, t, self.vehicle.mass, "mass"),
+        )
+        if not self.core.initialised and self.init_from_wheels and not np.all(np.isfinite(wheels)):
+            # Starting from initial_vx while the car may be moving costs seconds of transient
+            # (and a wrong slope and mass downstream): wait up to WHEEL_WAIT_S for the wheels.
+            if self._first_imu_t is None:
+                self._first_imu_t = t
+            if t - self._first_imu_t < WHEEL_WAIT_S:
+                return
+        # The filter steps at filter_rate_hz on the mean of the IMU samples since its last step:
+        # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
+        # measurement of the interval than any one sample.
+        self._z_sum += (f[0], f[1] - self._roll_gravity(t), w[2])
+        self._z_count += 1
+        if self.core.initialised and t - self._last_step_t < 1.0 / self.filter_rate - STAMP_TOLERANCE_S:
+            return
+        z = self._z_sum / self._z_count
+        self._z_sum[:] = 0.0
+        self._z_count = 0
+        self._last_step_t = t
+        reinitialisations = self.core.reinitialisations
+        if not self.core.step(t, inputs, z):
+            self.reject("state:rejected_by_filter")
+        if self.core.reinitialisations != reinitialisations:
+            self.note_event(f"vehicle-state filter {self.core.last_event}")
+        # vx is measured while both rear wheel speeds are there (the filter reads them).
+        rear_wheels_measured = bool(np.all(np.isfinite(wheels[2:])))
+        if self.speed_fallback:
+            self._update_speed_fallback(t, rear_wheels_measured)
+        # Without a speed measurement vx integrates the accelerometer and drifts without bound,
+        # and the sideslip with it: still published, never as converged.
+        self._vx_measured = rear_wheels_measured or self.vx_source == VX_FROM_SPEED
+        if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
+            self._last_pub = t
+            self.publish_state(t)
+
+    def publish_state(self, t: float) -> None:
+        x, P = np.asarray(self.core.x, dtype=float), np.asarray(self.core.P, dtype=float)
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            self.reject("state:non_finite")
+            self.note_event("vehicle-state filter became non-finite: re-initialising")
+            self.core.reset()
+            return
+        msg = TwistWithCovarianceStamped()
+        sec_to_stamp(t, msg.header.stamp)
+        msg.header.frame_id = topics.BASE_FRAME
+        msg.twist.twist.linear.x = float(x[0])
+        msg.twist.twist.linear.y = float(x[1])
+        msg.twist.twist.angular.z = float(x[2])
+        cov = np.zeros((6, 6))
+        idx = [0, 1, 5]
+        cov[np.ix_(idx, idx)] = P[:3, :3]
+        for i in (2, 3, 4):
+            cov[i, i] = 1e6  # not estimated: vz, roll rate, pitch rate
+        msg.twist.covariance = [float(c) for c in cov.ravel()]
+        self.publish(self.pub_state, msg)
+        if abs(x[0]) >= self.min_dynamic_speed:
+            beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
+            converged = not self.missing and self._vx_measured
+        else:
+            # Below the speed where the tyre model means anything (the core regularises slip
+            # below ~3 m/s) the sideslip is kinematic: no tyre slip, beta = atan(lr tan(delta) / L).
+            beta = math.atan(self.vehicle.lr * math.tan(self._steer) / self.vehicle.wheelbase)
+            beta_var, converged = math.radians(5.0) ** 2, False
+        beta_var = min(beta_var, (math.pi / 2) ** 2) if math.isfinite(beta_var) else (math.pi / 2) ** 2
+        self.publish(self.pub_beta_stamped, companion(t, beta, beta_var, converged))
+        self.publish(self.pub_beta, Float64(data=beta))
+
+    def reset_estimators(self) -> None:
+        self.core = self._make_core()
+        self.bias.clear()
+        self.slope.clear()
+        self.mass.clear()
+        self.attitude.clear()
+        self.chassis = None
+        self.speed = None
+        self.speed_t = -math.inf
+        self._first_imu_t = None
+        self._vx_measured = False
+        self._last_pub = -math.inf
+        self._z_sum[:] = 0.0
+        self._z_count = 0
+        self._last_step_t = -math.inf
+
+    def status_values(self) -> dict[str, str]:
+        x = self.core.x
+        extra = {}
+        if self.filter_name == "vbackf":
+            extra = {"learnt R diagonal": np.array2string(np.diag(self.core.measurement_noise), precision=6),
+                     "VB fallbacks": str(self.core.vb_fallbacks)}
+        elif isinstance(self.core, VehicleStateAOUKF):
+            # Measurements the anti-outlier step down-weighted, ignored or replaced (Sec. 3.3).
+            extra = {f"aoukf {k}": str(v) for k, v in self.core.counters.items()}
+            extra["GA-BPNN correction"] = "on" if self.core.correction is not None else "off"
+        extra["filter re-initialisations"] = str(self.core.reinitialisations)
+        extra["vx source"] = self.vx_source
+        extra["roll compensation"] = self.roll_source
+        return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
+                "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(StateNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

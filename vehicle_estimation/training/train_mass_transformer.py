@@ -1,0 +1,191 @@
+"""Train the paper-000 mass networks (transformer of Sec. 2.2, MLP and LSTM baselines) on CPU.
+
+Usage::
+
+    python -m vehicle_estimation.training.train_mass_transformer \\
+        [--data out/truck_data/dataset.npz] [--out vehicle_estimation/models] \\
+        [--kinds transformer,mlp,lstm] [--epochs 30] [--threads 2] [--seed 0]
+
+Without ``--data`` (or when the file is missing) the dataset is generated first
+(:mod:`vehicle_estimation.training.truck_data`, ~20 s). Every window of ``--window`` consecutive
+feature blocks of a drive is a sample (no subsampling: ~30,000 training windows); the target
+is the gross mass. Loss: mean square error of the normalised mass (Eq. 5), Adam with a cosine
+learning-rate decay, batch 256; the weights of the epoch with the lowest validation loss are
+kept. Each epoch prints the training loss, the validation loss and the validation MAPE.
+
+Writes ``<out>/mass_<kind>.safetensors`` + ``.json`` (the transformer as
+``mass_transformer``) with the feature normalisation, the tau Gaussian of Eqs. (16)-(19)
+fitted to x' of the training blocks, and the validation relative RMSE (sqrt(R_nn)). Fixed
+seed and single-process data order: re-running reproduces the metrics up to floating-point
+non-determinism of the CPU kernels (see the report for the observed spread).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from vehicle_estimation.paths import MODELS_DIR
+
+DEFAULT_OUT = MODELS_DIR
+
+
+def split_windows(data: dict[str, np.ndarray], window: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(windows, mass) per split name, from the block arrays of :func:`truck_data.generate`."""
+    from vehicle_estimation.training.truck_data import windows_of
+
+    out: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {s: ([], []) for s in ("train", "val", "test")}
+    for d in range(data["drive_mass"].size):
+        sel = data["drive"] == d
+        w, _ = windows_of(data["nn"][sel], data["segment"][sel], window)
+        name = ("train", "val", "test")[int(data["drive_split"][d])]
+        out[name][0].append(w)
+        out[name][1].append(np.full(w.shape[0], float(data["drive_mass"][d])))
+    return {k: (np.concatenate(v[0]) if v[0] else np.zeros((0, window, data["nn"].shape[1])),
+                np.concatenate(v[1]) if v[1] else np.zeros(0)) for k, v in out.items()}
+
+
+def train_one(kind: str, data: dict[str, np.ndarray], *, window: int, epochs: int, seed: int,
+              batch: int = 256, lr: float = 1e-3, progress: bool = True, max_train: int = 0,
+              spec_overrides: dict | None = None):
+    """Train one network; returns the :class:`MassModel` and a history dict."""
+    import torch
+
+    from vehicle_estimation.estimators.mass.mass_transformer import MassModel, ModelSpec, build_network
+    from vehicle_estimation.estimators.mass.ta_aekf import fit_confidence_gaussian
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    block_steps = int(data["block_steps"])
+    spec = ModelSpec(kind=kind, window=window, block_steps=block_steps, **(spec_overrides or {}))
+    spec.validate()
+    splits = split_windows(data, window)
+    x_tr, m_tr = splits["train"]
+    x_va, m_va = splits["val"]
+    if max_train and x_tr.shape[0] > max_train:        # quick runs only (smoke tests)
+        keep = rng.choice(x_tr.shape[0], max_train, replace=False)
+        x_tr, m_tr = x_tr[keep], m_tr[keep]
+    if x_tr.shape[0] == 0 or x_va.shape[0] == 0:
+        raise ValueError("the dataset has no training or no validation windows")
+    train_blocks = data["nn"][np.isin(data["drive"], np.flatnonzero(data["drive_split"] == 0))]
+    feat_mean = train_blocks.mean(axis=0)
+    feat_std = train_blocks.std(axis=0) + 1e-9
+    mass_mean, mass_std = float(m_tr.mean()), float(m_tr.std() + 1e-9)
+    tau_blocks = data["tau"][np.isin(data["drive"], np.flatnonzero(data["drive_split"] == 0))]
+    tau_mean, tau_cov = fit_confidence_gaussian(tau_blocks)
+
+    def to_tensor(x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor((x - feat_mean) / feat_std, dtype=torch.float32)
+
+    xt, yt = to_tensor(x_tr), torch.as_tensor((m_tr - mass_mean) / mass_std, dtype=torch.float32)
+    xv = to_tensor(x_va)
+    net = build_network(spec)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    steps_per_epoch = math.ceil(xt.shape[0] / batch)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs * steps_per_epoch, 1))
+    best: tuple[float, dict | None, int] = (math.inf, None, -1)
+    history: dict[str, list[float]] = {"train_loss": [], "val_loss": [], "val_mape": []}
+    gen = torch.Generator().manual_seed(seed)
+    t0 = time.monotonic()
+
+    def evaluate() -> np.ndarray:
+        net.eval()
+        with torch.no_grad():
+            out = torch.cat([net(xv[i:i + 2048]) for i in range(0, xv.shape[0], 2048)])
+        net.train()
+        return out.double().numpy() * mass_std + mass_mean
+
+    for epoch in range(1, epochs + 1):
+        net.train()
+        perm = torch.randperm(xt.shape[0], generator=gen)
+        total = 0.0
+        for b in range(steps_per_epoch):
+            idx = perm[b * batch:(b + 1) * batch]
+            opt.zero_grad()
+            loss = torch.mean((net(xt[idx]) - yt[idx]) ** 2)                 # Eq. (5)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            opt.step()
+            sched.step()
+            total += float(loss.detach()) * idx.numel()
+        pred = evaluate()
+        val_loss = float(np.mean(((pred - m_va) / mass_std) ** 2))
+        val_mape = float(100.0 * np.mean(np.abs(pred - m_va) / m_va))
+        history["train_loss"].append(total / xt.shape[0])
+        history["val_loss"].append(val_loss)
+        history["val_mape"].append(val_mape)
+        if val_loss < best[0]:
+            best = (val_loss, {k: v.detach().clone() for k, v in net.state_dict().items()}, epoch)
+        if progress:
+            print(f"  {kind:<11} epoch {epoch:3d}/{epochs}  train {total / xt.shape[0]:.4f}  "
+                  f"val {val_loss:.4f}  val MAPE {val_mape:5.2f} %  {time.monotonic() - t0:6.1f} s",
+                  flush=True)
+    assert best[1] is not None
+    net.load_state_dict(best[1])
+    model = MassModel(spec=spec, network=net, feature_mean=feat_mean, feature_std=feat_std,
+                      mass_mean=mass_mean, mass_std=mass_std, tau_mean=tau_mean, tau_cov=tau_cov)
+    pred = model.predict(x_va)
+    rel = (pred - m_va) / m_va
+    model.validation_rel_rmse = float(np.sqrt(np.mean(rel * rel)))
+    model.metadata = {
+        "trained_by": "vehicle_estimation.training.train_mass_transformer", "seed": seed,
+        "epochs": epochs, "best_epoch": best[2], "batch": batch, "lr": lr,
+        "train_windows": int(xt.shape[0]), "val_windows": int(x_va.shape[0]),
+        "val_mape_percent": float(100.0 * np.mean(np.abs(rel))),
+        "train_mass_range_kg": [float(m_tr.min()), float(m_tr.max())],
+        "dataset": "paper 000 Sec. 3 heavy truck, HWFET, 5 slope profiles (training/truck_data.py)",
+        "train_seconds": round(time.monotonic() - t0, 1),
+    }
+    return model, history
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", default="out/truck_data/dataset.npz",
+                   help="dataset of training/truck_data.py (generated there when missing)")
+    p.add_argument("--out", default=str(DEFAULT_OUT), help="directory of the model files")
+    p.add_argument("--kinds", default="transformer,mlp,lstm", help="networks to train")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--window", type=int, default=10, help="feature blocks per window (w)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--max-train", type=int, default=0, help="subsample training windows (0: all)")
+    p.add_argument("--d-model", type=int, default=64)
+    p.add_argument("--quiet", action="store_true")
+
+
+def main(args: argparse.Namespace) -> int:
+    import torch
+
+    from vehicle_estimation.training import truck_data
+
+    torch.set_num_threads(max(1, args.threads))
+    path = Path(args.data)
+    if path.is_file():
+        data = truck_data.load_dataset(path)
+        print(f"dataset {path}: {data['drive_mass'].size} drives, {data['nn'].shape[0]} blocks")
+    else:
+        print(f"dataset {path} missing: generating it (paper 000 Sec. 3)")
+        data = truck_data.generate(progress=not args.quiet)
+        truck_data.save_dataset(data, path)
+    out = Path(args.out)
+    for kind in [k.strip() for k in args.kinds.split(",") if k.strip()]:
+        overrides = {"d_model": args.d_model} if kind == "transformer" else {}
+        model, history = train_one(kind, data, window=args.window, epochs=args.epochs, seed=args.seed,
+                                   progress=not args.quiet, max_train=args.max_train,
+                                   spec_overrides=overrides)
+        weights, meta = model.save(out / f"mass_{kind}")
+        print(f"{kind}: best epoch {model.metadata['best_epoch']}, val MAPE "
+              f"{model.metadata['val_mape_percent']:.2f} %, val rel. RMSE {100 * model.validation_rel_rmse:.2f} % "
+              f"-> {weights} ({weights.stat().st_size / 1024:.0f} KiB), {meta.name}")
+        del history
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    sys.exit(main(parser.parse_args()))
