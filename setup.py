@@ -25,7 +25,7 @@ setup(
         (f"share/{PACKAGE}/params/import_maps", glob("params/import_maps/*.yaml")),
     ],
     python_requires=">=3.10",
-    install_requires=["setuptools", "numpy", "scipy", "pyyaml", "rosbags>=0.10", "matplotlib"],
+    install_requires=["setuptools", "numpy", "scipy", "pyyaml", "rosbags>=0.10", "matplotlib", "pymap3d", "tqdm"],
     extras_require={
         # What a machine without a ROS 2 install needs: rclpy and the message packages as wheels.
         "pypi": [

@@ -84,7 +84,8 @@ class Harness:
         """
         from collections import Counter
         sent: Counter[str] = Counter()
-        rx = getattr(self.node, "_rx", None)
+        health = getattr(self.node, "health", None)     # an EstimatorNode's per-topic counters
+        rx = health.rx if health is not None else None
         # counts so far: a second call must wait for its own messages, not earlier calls' ones
         base = Counter(rx) if rx is not None else Counter()
         for start in range(0, len(items), chunk):

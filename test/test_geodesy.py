@@ -1,34 +1,28 @@
-"""Tests for vehicle_estimation.estimators.common.geodesy (WGS84 <-> ENU)."""
+"""Tests for vehicle_estimation.estimators.common.geodesy (WGS84 <-> ENU over pymap3d), against
+values computed here from the WGS84 definition, independently of the library."""
 import math
 
 import numpy as np
 import pytest
 
-from vehicle_estimation.estimators.common.geodesy import (WGS84_A, WGS84_B, LocalTangentPlane, ecef_to_geodetic,
-                                             geodetic_to_ecef)
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+
+WGS84_A = 6378137.0                      # semi-major axis [m] (the WGS84 definition)
+WGS84_E2 = 6.69437999014e-3              # first eccentricity squared
 
 
-def test_ecef_known_points():
-    np.testing.assert_allclose(geodetic_to_ecef(0.0, 0.0, 0.0), [WGS84_A, 0.0, 0.0], atol=1e-6)
-    np.testing.assert_allclose(geodetic_to_ecef(90.0, 0.0, 0.0), [0.0, 0.0, WGS84_B], atol=1e-6)
-    np.testing.assert_allclose(geodetic_to_ecef(0.0, 90.0, 100.0), [0.0, WGS84_A + 100.0, 0.0], atol=1e-6)
-    # 45 N, 45 E, h = 0: x = y = N/2, z = N (1 - e2) sin(45), N = prime-vertical radius
-    lat = math.radians(45.0)
-    e2 = 6.69437999014e-3
-    n = WGS84_A / math.sqrt(1 - e2 * math.sin(lat) ** 2)
-    np.testing.assert_allclose(geodetic_to_ecef(45.0, 45.0, 0.0),
-                               [n * 0.5, n * 0.5, n * (1 - e2) * math.sin(lat)], rtol=1e-12)
-
-
-def test_ecef_round_trip_vectorised():
-    rng = np.random.default_rng(1)
-    lat = rng.uniform(-89.9, 89.9, 1000)
-    lon = rng.uniform(-180, 180, 1000)
-    alt = rng.uniform(-500, 9000, 1000)
-    la, lo, al = ecef_to_geodetic(geodetic_to_ecef(lat, lon, alt))
-    np.testing.assert_allclose(la, lat, atol=1e-9)
-    np.testing.assert_allclose(((lo - lon + 180) % 360) - 180, 0.0, atol=1e-9)
-    np.testing.assert_allclose(al, alt, atol=1e-4)
+def test_enu_matches_the_ellipsoid_radii_of_curvature():
+    """Small offsets scale with the prime-vertical and meridian radii at the origin's latitude."""
+    for lat0 in (0.0, 35.0, 57.0488, 80.0):
+        ltp = LocalTangentPlane(lat0, 9.9, 0.0)
+        s = math.sin(math.radians(lat0))
+        n_radius = WGS84_A / math.sqrt(1.0 - WGS84_E2 * s * s)
+        m_radius = WGS84_A * (1.0 - WGS84_E2) / (1.0 - WGS84_E2 * s * s) ** 1.5
+        d = 1e-5   # deg: ~1 m, where arc and chord agree to micrometres
+        east = ltp.to_enu(lat0, 9.9 + d, 0.0)[0]
+        north = ltp.to_enu(lat0 + d, 9.9, 0.0)[1]
+        assert east == pytest.approx(n_radius * math.cos(math.radians(lat0)) * math.radians(d), rel=1e-5)
+        assert north == pytest.approx(m_radius * math.radians(d), rel=1e-5)
 
 
 def test_enu_known_offsets():

@@ -14,8 +14,8 @@ import torch
 
 from vehicle_estimation.estimators.mass.mass_transformer import (
     MassModel, ModelSpec, TransformerMassNet, build_network)
-from vehicle_estimation.estimators.mass.ta_aekf import (
-    DEFAULT_MODEL_STEM, NN_FEATURES, TaAekfConfig, TaAekfMassEstimator, fit_confidence_gaussian)
+from vehicle_estimation.estimators.mass.ta_aekf import DEFAULT_MODEL_STEM, TaAekfConfig, TaAekfMassEstimator
+from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, fit_confidence_gaussian
 from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 torch.set_num_threads(1)

@@ -286,7 +286,7 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
         if fallback:
             assert vx == pytest.approx(20.0, abs=0.3)
             assert node.core.speed_updates > 500
-            assert all(converged), (node._missing, node.vx_source)
+            assert all(converged), (node.missing, node.vx_source)
             assert math.sqrt(state[-1].twist.covariance[0]) < conversions.MAX_MEASURED_SPEED_STD
         else:
             assert vx > 22.0        # the drift the fallback removes

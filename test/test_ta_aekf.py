@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from vehicle_estimation.estimators.mass.ta_aekf import (
-    REJECT_REASONS, AdaptiveEKF, DriveInput, TaAekfConfig, TaAekfMassEstimator, confidence_level,
-    fit_confidence_gaussian, gaussian_density, longitudinal_accel, peak_density, transition,
+    REJECT_REASONS, AdaptiveEKF, DriveInput, TaAekfConfig, TaAekfMassEstimator, longitudinal_accel, transition,
     transition_jacobian)
+from vehicle_estimation.estimators.mass.ta_features import (confidence_level, fit_confidence_gaussian,
+                                                            gaussian_density, peak_density)
 from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"

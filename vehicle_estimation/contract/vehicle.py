@@ -20,15 +20,9 @@ from typing import Any, Mapping
 
 import yaml
 
+from vehicle_estimation.contract.settings import check_settings, setting
+
 GRAVITY = 9.80665  # m/s², standard gravity
-
-
-def _ranged(default: float, low: float, high: float, doc: str) -> Any:
-    """A vehicle field with its plausible range and its one-line documentation: the one place
-    they are written. ``validate()``, the nodes' parameter descriptors and the README's
-    parameter reference all read them. Ranges are wide enough for a city car and a 60 t road
-    train, narrow enough to stop a typo (mass in tonnes, radius in mm) at start-up."""
-    return dataclasses.field(default=default, metadata={"range": (low, high), "doc": doc})
 
 
 def dataclass_from_mapping(cls: Any, values: Mapping[str, Any], unknown: str) -> Any:
@@ -80,62 +74,56 @@ class VehicleParams:
     (b_F, b_R), ``cg_height`` the CoG height h.
     """
 
-    name: str = "vehicle"
-    mass: float = _ranged(
-        1530.0, 100.0, 100000.0, "Nominal gross mass [kg]; estimators use it only as a prior")
-    curb_mass: float = _ranged(1530.0, 100.0, 100000.0, "Mass without payload [kg]")
-    lf: float = _ranged(1.139, 0.2, 10.0, "CoG to front axle [m]")
-    lr: float = _ranged(1.637, 0.2, 10.0, "CoG to rear axle [m]")
-    track_front: float = _ranged(1.55, 0.5, 4.0, "Front track width b_F [m]")
-    track_rear: float = _ranged(1.55, 0.5, 4.0, "Rear track width b_R [m]")
-    cg_height: float = _ranged(0.519, 0.1, 4.0, "CoG height h [m]")
-    yaw_inertia: float = _ranged(4607.47, 100.0, 2000000.0, "Yaw moment of inertia I_z [kg m^2]")
-    wheel_radius: float = _ranged(0.325, 0.1, 1.5, "Effective rolling radius [m]")
-    wheel_inertia: float = _ranged(
-        4.0, 0.0, 1000.0, "Rotational inertia of all wheels and driveshafts I_w [kg m^2]")
-    engine_inertia: float = _ranged(0.2, 0.0, 50.0, "Engine-side rotational inertia I_e [kg m^2]")
-    frontal_area: float = _ranged(2.4, 0.5, 20.0, "Frontal area A [m^2]")
-    drag_coefficient: float = _ranged(0.3, 0.05, 2.0, "Aerodynamic drag coefficient C_d")
-    air_density: float = _ranged(1.206, 0.5, 2.0, "Air density [kg/m^3]")
-    rolling_resistance: float = _ranged(0.013, 0.0, 0.1, "Rolling resistance coefficient C_r")
-    driveline_efficiency: float = _ranged(0.89, 0.3, 1.0, "Driveline efficiency eta")
-    final_drive: float = _ranged(4.1, 0.5, 20.0, "Final drive ratio i_d")
-    gear_ratios: tuple[float, ...] = (3.5, 2.1, 1.4, 1.0, 0.8)  # i_t,j, first gear first
-    steering_ratio: float = _ranged(19.0, 1.0, 40.0, "Steering-wheel to road-wheel ratio")
-    driven_axle: str = "front"           # "front", "rear" or "all"
+    name: str = setting("vehicle", "Vehicle name (persisted estimates and shipped models are per vehicle)")
+    mass: float = setting(1530.0, "Nominal gross mass [kg]; estimators use it only as a prior", low=100.0, high=100000.0)
+    curb_mass: float = setting(1530.0, "Mass without payload [kg]", low=100.0, high=100000.0)
+    lf: float = setting(1.139, "CoG to front axle [m]", low=0.2, high=10.0)
+    lr: float = setting(1.637, "CoG to rear axle [m]", low=0.2, high=10.0)
+    track_front: float = setting(1.55, "Front track width b_F [m]", low=0.5, high=4.0)
+    track_rear: float = setting(1.55, "Rear track width b_R [m]", low=0.5, high=4.0)
+    cg_height: float = setting(0.519, "CoG height h [m]", low=0.1, high=4.0)
+    yaw_inertia: float = setting(4607.47, "Yaw moment of inertia I_z [kg m^2]", low=100.0, high=2000000.0)
+    wheel_radius: float = setting(0.325, "Effective rolling radius [m]", low=0.1, high=1.5)
+    wheel_inertia: float = setting(4.0, "Rotational inertia of all wheels and driveshafts I_w [kg m^2]", low=0.0, high=1000.0)
+    engine_inertia: float = setting(0.2, "Engine-side rotational inertia I_e [kg m^2]", low=0.0, high=50.0)
+    frontal_area: float = setting(2.4, "Frontal area A [m^2]", low=0.5, high=20.0)
+    drag_coefficient: float = setting(0.3, "Aerodynamic drag coefficient C_d", low=0.05, high=2.0)
+    air_density: float = setting(1.206, "Air density [kg/m^3]", low=0.5, high=2.0)
+    rolling_resistance: float = setting(0.013, "Rolling resistance coefficient C_r", low=0.0, high=0.1)
+    driveline_efficiency: float = setting(0.89, "Driveline efficiency eta", low=0.3, high=1.0)
+    final_drive: float = setting(4.1, "Final drive ratio i_d", low=0.5, high=20.0)
+    gear_ratios: tuple[float, ...] = setting((3.5, 2.1, 1.4, 1.0, 0.8), "Transmission ratios i_t,j, first gear first",
+                                             low=0.0, low_open=True, each=True)
+    steering_ratio: float = setting(19.0, "Steering-wheel to road-wheel ratio", low=1.0, high=40.0)
+    driven_axle: str = setting("front", "Driven axle", choices=DRIVEN_AXLES)
     # Engine (for the simulator's torque map and the OBD-II load of SAE J1979 PID 04)
-    engine_idle_speed: float = _ranged(850.0 * math.pi / 30.0, 10.0, 300.0, "Engine idle speed [rad/s]")
-    engine_max_speed: float = _ranged(6200.0 * math.pi / 30.0, 50.0, 2000.0, "Engine maximum speed [rad/s]")
-    engine_max_torque: float = _ranged(320.0, 10.0, 10000.0, "Engine maximum torque [N m]")
-    engine_max_power: float = _ranged(142e3, 1000.0, 2000000.0, "Engine maximum power [W]")
-    engine_drag_torque: float = _ranged(25.0, 0.0, 1000.0, "Engine drag torque at zero load [N m]")
-    max_brake_torque: float = _ranged(3000.0, 100.0, 100000.0, "Maximum brake torque per wheel [N m]")
-    brake_front_share: float = _ranged(0.65, 0.0, 1.0, "Share of brake torque on the front axle")
+    engine_idle_speed: float = setting(850.0 * math.pi / 30.0, "Engine idle speed [rad/s]", low=10.0, high=300.0)
+    engine_max_speed: float = setting(6200.0 * math.pi / 30.0, "Engine maximum speed [rad/s]", low=50.0, high=2000.0)
+    engine_max_torque: float = setting(320.0, "Engine maximum torque [N m]", low=10.0, high=10000.0)
+    engine_max_power: float = setting(142e3, "Engine maximum power [W]", low=1000.0, high=2000000.0)
+    engine_drag_torque: float = setting(25.0, "Engine drag torque at zero load [N m]", low=0.0, high=1000.0)
+    max_brake_torque: float = setting(3000.0, "Maximum brake torque per wheel [N m]", low=100.0, high=100000.0)
+    brake_front_share: float = setting(0.65, "Share of brake torque on the front axle", low=0.0, high=1.0)
     # Tyres (Dugoff model, paper 004 Eqs. 5-9; per tyre)
-    cornering_stiffness_front: float = _ranged(
-        60000.0, 1000.0, 2000000.0, "Cornering stiffness per front tyre [N/rad]")
-    cornering_stiffness_rear: float = _ranged(
-        55000.0, 1000.0, 2000000.0, "Cornering stiffness per rear tyre [N/rad]")
-    longitudinal_stiffness: float = _ranged(
-        80000.0, 1000.0, 5000000.0, "Longitudinal slip stiffness per tyre [N]")
+    cornering_stiffness_front: float = setting(60000.0, "Cornering stiffness per front tyre [N/rad]", low=1000.0, high=2000000.0)
+    cornering_stiffness_rear: float = setting(55000.0, "Cornering stiffness per rear tyre [N/rad]", low=1000.0, high=2000000.0)
+    longitudinal_stiffness: float = setting(80000.0, "Longitudinal slip stiffness per tyre [N]", low=1000.0, high=5000000.0)
     # Load sensitivity of those two stiffnesses: C(F_z) = C (F_z / F_z0)^n with F_z0 the static
     # load of the tyre at ``mass``. 0 = constant (paper 004 Eq. 9, our simulator); 1 = proportional
     # to the load (a Magic-Formula tyre with K = p_k1 F_z, as commonroad-vehicle-models codes it);
     # real tyres lie in between (degressive).
-    tyre_load_exponent: float = _ranged(
-        0.0, 0.0, 2.0, "Load sensitivity n of the tyre stiffnesses, C (F_z/F_z0)^n (0 = constant, paper 004)")
-    road_friction: float = _ranged(0.9, 0.05, 1.5, "Tyre-road friction coefficient mu")
+    tyre_load_exponent: float = setting(0.0, "Load sensitivity n of the tyre stiffnesses, C (F_z/F_z0)^n (0 = constant, paper 004)", low=0.0, high=2.0)
+    road_friction: float = setting(0.9, "Tyre-road friction coefficient mu", low=0.05, high=1.5)
     # Magic-Formula lateral tyre (paper 002 Sec. 2.2); used by the 3-DOF UKF model
-    magic_b: float = _ranged(10.0, 0.1, 50.0, "Magic Formula stiffness factor B")
-    magic_c: float = _ranged(1.3, 0.1, 5.0, "Magic Formula shape factor C")
-    magic_d: float = _ranged(1.0, 0.1, 5.0, "Magic Formula peak factor D (times mu F_z)")
-    magic_e: float = _ranged(0.97, -10.0, 1.0, "Magic Formula curvature factor E")
+    magic_b: float = setting(10.0, "Magic Formula stiffness factor B", low=0.1, high=50.0)
+    magic_c: float = setting(1.3, "Magic Formula shape factor C", low=0.1, high=5.0)
+    magic_d: float = setting(1.0, "Magic Formula peak factor D (times mu F_z)", low=0.1, high=5.0)
+    magic_e: float = setting(0.97, "Magic Formula curvature factor E", low=-10.0, high=1.0)
     # Body pitch on the suspension per longitudinal acceleration (squat/dive), positive nose up
     # when accelerating: the IMU sees it, the road does not have it.
-    pitch_gain: float = _ranged(
-        0.002, 0.0, 0.05, "Body pitch per longitudinal acceleration, nose up when accelerating [rad per m/s^2]")
-    pitch_time_constant: float = _ranged(0.15, 0.0, 5.0, "Time constant of the suspension pitch response [s]")
-    gravity: float = _ranged(GRAVITY, 9.7, 9.9, "Gravitational acceleration [m/s^2]")
+    pitch_gain: float = setting(0.002, "Body pitch per longitudinal acceleration, nose up when accelerating [rad per m/s^2]", low=0.0, high=0.05)
+    pitch_time_constant: float = setting(0.15, "Time constant of the suspension pitch response [s]", low=0.0, high=5.0)
+    gravity: float = setting(GRAVITY, "Gravitational acceleration [m/s^2]", low=9.7, high=9.9)
 
 
     @property
@@ -158,29 +146,11 @@ class VehicleParams:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first parameter that is not physical."""
-        for field in dataclasses.fields(self):
-            bounds = field.metadata.get("range")
-            if bounds is None:
-                continue
-            value = getattr(self, field.name)
-            low, high = bounds
-            if not (math.isfinite(value) and low <= value <= high):
-                raise ValueError(f"vehicle.{field.name} must be in [{low:g}, {high:g}], got {value!r}")
-        if not self.gear_ratios or any(not (math.isfinite(g) and g > 0) for g in self.gear_ratios):
-            raise ValueError(f"vehicle.gear_ratios must be a non-empty list of positive ratios, got {self.gear_ratios!r}")
-        if self.driven_axle not in DRIVEN_AXLES:
-            raise ValueError(f"vehicle.driven_axle must be 'front', 'rear' or 'all', got {self.driven_axle!r}")
+        check_settings(self, prefix="vehicle.")
+        if not self.gear_ratios:
+            raise ValueError("vehicle.gear_ratios must list at least one ratio")
         if self.engine_idle_speed >= self.engine_max_speed:
             raise ValueError("vehicle.engine_idle_speed must be below vehicle.engine_max_speed")
-
-    @classmethod
-    def field_range(cls, name: str) -> tuple[float, float, str] | None:
-        """(low, high, documentation) of a ranged field, None for the others."""
-        field = {f.name: f for f in dataclasses.fields(cls)}[name]
-        if "range" not in field.metadata:
-            return None
-        low, high = field.metadata["range"]
-        return low, high, field.metadata["doc"]
 
     @property
     def undriven_wheels(self) -> tuple[int, ...]:
@@ -188,10 +158,6 @@ class VehicleParams:
         the vehicle's without drive slip. An all-wheel drive has none; all four are returned,
         since they slip alike."""
         return UNDRIVEN_WHEELS[self.driven_axle]
-
-    @classmethod
-    def field_names(cls) -> list[str]:
-        return [f.name for f in dataclasses.fields(cls)]
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "VehicleParams":

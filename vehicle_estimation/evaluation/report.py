@@ -28,6 +28,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.rotations import euler_from_quat
 from vehicle_estimation.evaluation import metrics
 
 DEFAULT_WARMUP_S = 5.0
@@ -48,10 +49,9 @@ def _stamp(msg: Any, log_ns: int) -> float:
     return log_ns * 1e-9
 
 
-def _quat_pitch(q: Any) -> float:
-    """Pitch (rotation about body y, REP-103: positive nose down) of a quaternion."""
-    s = 2.0 * (q.w * q.y - q.z * q.x)
-    return math.asin(max(-1.0, min(1.0, s)))
+def _pitch(q: Any) -> float:
+    """Pitch (rotation about body y, REP-103: positive nose down) of a geometry_msgs quaternion."""
+    return euler_from_quat(np.array([q.x, q.y, q.z, q.w]))[1]
 
 
 def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
@@ -68,7 +68,7 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
         pos = msg.pose.pose.position
         return {"x": pos.x, "y": pos.y, "vx": tw.linear.x, "vy": tw.linear.y,
                 "speed": math.hypot(tw.linear.x, tw.linear.y),
-                "pitch": _quat_pitch(msg.pose.pose.orientation)}
+                "pitch": _pitch(msg.pose.pose.orientation)}
     return None
 
 

@@ -129,8 +129,9 @@ import numpy as np
 import yaml
 
 from vehicle_estimation.contract import topics as T
+from vehicle_estimation.contract.vehicle import GRAVITY
 
-G = 9.80665
+G = GRAVITY
 MAPPING_VERSION = 1
 
 # --------------------------------------------------------------------------- units

@@ -17,6 +17,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from vehicle_estimation.contract import topics as T
+from vehicle_estimation.estimators.common.rotations import quat_from_euler
 
 T0_NS = 1_700_000_000 * 1_000_000_000
 
@@ -183,14 +184,6 @@ def _stamps(t: np.ndarray, t0_ns: int):
     return ns, ns // 1_000_000_000, ns % 1_000_000_000
 
 
-def _quat_from_rpy(roll, pitch, yaw):
-    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
-    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
-    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
-    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
-
-
 def build_streams(result, t0_ns: int = T0_NS) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     """(topic, msgtype, log times ns, byte matrix) for every topic of the contract; stamps are
     ``t0_ns`` plus the simulation time (0: a bag starting at 0 s, as other simulators write)."""
@@ -250,7 +243,7 @@ def build_streams(result, t0_ns: int = T0_NS) -> list[tuple[str, str, np.ndarray
     streams.append((T.GT_SIDESLIP, f64.msgtype, ns, f64.fill(n, {"data": TR["sideslip"]})))
     vals = {"sec": sec, "nsec": nsec, "lx": TR["vx"], "ly": TR["vy"], "wz": TR["yaw_rate"]}
     streams.append((T.GT_VEHICLE_STATE, tpl["twist"].msgtype, ns, tpl["twist"].fill(n, vals)))
-    qx, qy, qz, qw = _quat_from_rpy(TR["roll"], TR["pitch"], TR["yaw"])
+    qx, qy, qz, qw = np.moveaxis(quat_from_euler(TR["roll"], TR["pitch"], TR["yaw"]), -1, 0)
     vals = {"sec": sec, "nsec": nsec, "px": TR["x"], "py": TR["y"], "pz": TR["z"],
             "qx": qx, "qy": qy, "qz": qz, "qw": qw,
             "lx": TR["vx"], "ly": TR["vy"], "wx": TR["wx"], "wy": TR["wy"], "wz": TR["wz"]}

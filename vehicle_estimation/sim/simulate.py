@@ -8,8 +8,9 @@ import math
 import numpy as np
 from scipy.signal import lfilter
 
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 from vehicle_estimation.sim.dynamics import simulate_dynamics
-from vehicle_estimation.sim.geodesy import enu_to_geodetic
 from vehicle_estimation.sim.profiles import reference_distance, reference_speed
 from vehicle_estimation.sim.road import Road, build_road
 from vehicle_estimation.sim.scenario import Scenario, SensorConfig
@@ -35,16 +36,6 @@ class SimResult:
     @property
     def duration(self) -> float:
         return float(self.truth["t"][-1])
-
-
-def _rot_rpy(roll, pitch, yaw):
-    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
-                              math.cos(yaw), math.sin(yaw))
-    return np.array([
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ])
 
 
 def _lowpass(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
@@ -136,7 +127,8 @@ def simulate(scenario: Scenario) -> SimResult:
     ik = np.arange(n_ctrl) * sub
     t = slow["t"]
     sideslip = np.where(vx[ik] > 0.1, np.arctan2(vy[ik], np.maximum(vx[ik], 1e-9)), 0.0)
-    lat, lon, alt = enu_to_geodetic(X[ik], Y[ik], Z[ik], scn.origin_lat, scn.origin_lon, scn.origin_alt)
+    lat, lon, alt = LocalTangentPlane(scn.origin_lat, scn.origin_lon, scn.origin_alt).to_geodetic(
+        np.stack([X[ik], Y[ik], Z[ik]], axis=-1))
     truth = {
         "t": t,
         "vx": vx[ik], "vy": vy[ik], "yaw_rate": wz[ik], "sideslip": sideslip,
@@ -185,7 +177,7 @@ def make_sensors(scn: Scenario, cfg: SensorConfig, truth: dict, kin: dict, seeds
     f = np.stack([np.interp(ti, kin["t"], kin["f"][:, i]) for i in range(3)], 1)
     w = np.stack([np.interp(ti, kin["t"], kin["w"][:, i]) for i in range(3)], 1)
     mis = np.radians(np.asarray(cfg.imu_misalignment_deg, float))
-    C = _rot_rpy(*mis)  # imu_link orientation in base_link
+    C = rotmat_from_euler(*mis)  # imu_link orientation in base_link
     f = f @ C          # = (C^T f^T)^T
     w = w @ C
     dti = 1.0 / cfg.imu_rate
@@ -237,7 +229,7 @@ def make_sensors(scn: Scenario, cfg: SensorConfig, truth: dict, kin: dict, seeds
     else:
         err = white
     pos_m = pos + err * sig
-    lat, lon, alt = enu_to_geodetic(pos_m[:, 0], pos_m[:, 1], pos_m[:, 2], scn.origin_lat, scn.origin_lon, scn.origin_alt)
+    lat, lon, alt = LocalTangentPlane(scn.origin_lat, scn.origin_lon, scn.origin_alt).to_geodetic(pos_m[:, :3])
     status = np.zeros(ng_, dtype=np.int8)
     keep = np.ones(ng_, dtype=bool)
     for (a, b) in cfg.gnss_outages:

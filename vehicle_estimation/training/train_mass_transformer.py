@@ -56,7 +56,7 @@ def train_one(kind: str, data: dict[str, np.ndarray], *, window: int, epochs: in
     import torch
 
     from vehicle_estimation.estimators.mass.mass_transformer import MassModel, ModelSpec, build_network
-    from vehicle_estimation.estimators.mass.ta_aekf import fit_confidence_gaussian
+    from vehicle_estimation.estimators.mass.ta_features import fit_confidence_gaussian
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)

@@ -40,8 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from vehicle_estimation.estimators.mass.ta_aekf import (
-    NN_FEATURES, TAU_FEATURES, FeatureBlocks, TaAekfConfig, drive_force_input, eq15_features)
+from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig, drive_force_input
+from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, TAU_FEATURES, FeatureBlocks, eq15_features
 from vehicle_estimation.contract.vehicle import VehicleParams
 
 CURB_MASS = 6042.0                                            # Table 1 [kg]

@@ -25,7 +25,7 @@ import math
 import numpy as np
 from scipy import signal
 
-from vehicle_estimation.contract.vehicle import VehicleParams
+from vehicle_estimation.contract.vehicle import GRAVITY, VehicleParams
 
 #: Corner of the kinematic grade's low-pass [Hz]: the accelerometer's vibration and the
 #: differentiated speed's quantisation are far above it, a road's grade changes below it.
@@ -62,7 +62,7 @@ def speed_derivative(t: np.ndarray, v: np.ndarray, rate_hz: float = 50.0, *, cau
 
 
 def kinematic_grade(imu_t: np.ndarray, fx: np.ndarray, speed_t: np.ndarray, speed: np.ndarray, *,
-                    gravity: float = 9.80665, rate_hz: float = 50.0,
+                    gravity: float = GRAVITY, rate_hz: float = 50.0,
                     cutoff_hz: float = KINEMATIC_GRADE_CUTOFF_HZ) -> tuple[np.ndarray, np.ndarray]:
     """(t, grade [rad]) from the longitudinal specific force and the speed, causal."""
     grid, _, dv = speed_derivative(speed_t, speed, rate_hz)

@@ -83,16 +83,28 @@ def quat_from_rotvec(phi) -> np.ndarray:
     return np.array([k * px, k * py, k * pz, math.cos(0.5 * ang)])
 
 
-def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """(x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll) (REP-103 fixed-axis rpy)."""
-    cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
-    cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
-    cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
-    return np.array([
+def quat_from_euler(roll, pitch, yaw) -> np.ndarray:
+    """(x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll) (REP-103 fixed-axis rpy); vectorised:
+    angle arrays of shape S give shape S + (4,)."""
+    cr, sr = np.cos(0.5 * np.asarray(roll)), np.sin(0.5 * np.asarray(roll))
+    cp, sp = np.cos(0.5 * np.asarray(pitch)), np.sin(0.5 * np.asarray(pitch))
+    cy, sy = np.cos(0.5 * np.asarray(yaw)), np.sin(0.5 * np.asarray(yaw))
+    return np.stack([
         sr * cp * cy - cr * sp * sy,
         cr * sp * cy + sr * cp * sy,
         cr * cp * sy - sr * sp * cy,
         cr * cp * cy + sr * sp * sy,
+    ], axis=-1)
+
+
+def rotmat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), written out."""
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
+                              math.cos(yaw), math.sin(yaw))
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
     ])
 
 

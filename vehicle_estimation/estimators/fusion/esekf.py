@@ -58,8 +58,10 @@ from typing import Any
 
 import numpy as np
 
-from vehicle_estimation.estimators.common.rotations import (euler_from_rotmat, quat_from_euler, quat_from_rotvec, quat_multiply,
-                        quat_normalize, quat_to_rotmat, rot_z, rotmat_to_quat, skew)
+from vehicle_estimation.contract.vehicle import GRAVITY
+from vehicle_estimation.estimators.common.rotations import (euler_from_rotmat, quat_from_euler, quat_from_rotvec,
+                                                            quat_multiply, quat_normalize, quat_to_rotmat, rot_z,
+                                                            rotmat_to_quat, skew)
 
 # Error-state layout, Eq. (32): z = [dp, dv, eps, dba, dbg], then the mounting pitch and
 # yaw corrections dm (about imu_link y, z; R_vi_true = R_vi_hat (I + S([0, dm]))).
@@ -112,7 +114,7 @@ class FusionConfig:
     are scaled by ``dt * imu_rate_hz`` so that they equal the paper at the nominal rate
     and stay consistent under timing jitter.
     """
-    gravity: float = 9.80665                 # [m/s^2] (paper uses 9.81, Eq. (27))
+    gravity: float = GRAVITY                 # [m/s^2] (paper uses 9.81, Eq. (27))
     imu_rate_hz: float = 200.0               # nominal rate the per-sample Q values refer to
     # --- Table 2: initial state standard deviations (P0) ---
     p0_position_sigma: float = 2.0           # [m]

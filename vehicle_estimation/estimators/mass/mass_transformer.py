@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from vehicle_estimation.estimators.mass.ta_aekf import NN_FEATURES, TAU_FEATURES, confidence_level
+from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, TAU_FEATURES, confidence_level
 
 KINDS = ("transformer", "mlp", "lstm")
 FORMAT_VERSION = 1

@@ -9,9 +9,7 @@ that the parameter reference in the README (``ros.paramdoc``) is generated, neve
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
-import re
 from typing import Any, Sequence
 
 from rcl_interfaces.msg import (
@@ -22,6 +20,7 @@ from rcl_interfaces.msg import (
 )
 from rclpy.parameter import Parameter
 
+from vehicle_estimation.contract.settings import Bounds
 from vehicle_estimation.contract.vehicle import VehicleParams
 
 
@@ -29,50 +28,23 @@ class ParameterError(ValueError):
     """A parameter is invalid; the message names it. Raised at start-up only."""
 
 
-def descriptor(description: str, *, low: float | int | None = None, high: float | int | None = None,
+def descriptor(description: str, *, bounds: Bounds | None = None, integer: bool = False,
                read_only: bool = True, additional: str = "") -> ParameterDescriptor:
-    """A read-only descriptor with a description and, given both bounds, an integer or float range."""
+    """A read-only descriptor with a description and, given ``bounds``, an integer or float
+    range (an open bound is given as closed: ``validate()`` excludes the bound itself)."""
     desc = ParameterDescriptor(description=description, read_only=read_only, additional_constraints=additional)
-    if low is not None and high is not None:
-        if isinstance(low, int) and isinstance(high, int) and not isinstance(low, bool):
-            desc.integer_range = [IntegerRange(from_value=low, to_value=high, step=1)]
+    if bounds is not None:
+        if integer:
+            desc.integer_range = [IntegerRange(
+                from_value=int(bounds.low) if bounds.low is not None else -(2 ** 63),
+                to_value=int(bounds.high) if bounds.high is not None else 2 ** 63 - 1, step=1)]
         else:
-            desc.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=float(bounds.low) if bounds.low is not None else -math.inf,
+                to_value=float(bounds.high) if bounds.high is not None else math.inf, step=0.0)]
+        if bounds.low_open or bounds.high_open:
+            desc.additional_constraints = f"in {bounds}" + (f"; {additional}" if additional else "")
     return desc
-
-
-def config_field_docs(cls: type) -> dict[str, str]:
-    """One line of documentation per dataclass field, from the field's trailing comment or
-    the class docstring's ``Attributes:`` entry or ``* ``name``: text`` bullet (base classes
-    included)."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        try:
-            source = inspect.getsource(klass)
-        except (OSError, TypeError):
-            continue
-        doc = inspect.cleandoc(klass.__doc__ or "")
-        attrs = re.search(r"Attributes:\n(.*?)(?:\n\s*\n|\Z)", doc, re.S)
-        if attrs:
-            entry = None
-            for line in attrs.group(1).splitlines():
-                m = re.match(r" {4}([\w, ]+):\s*(.*)", line)
-                if m and not line.startswith(" " * 5):
-                    entry = [n.strip() for n in m.group(1).split(",")]
-                    for name in entry:
-                        docs[name] = m.group(2).strip()
-                elif entry:
-                    for name in entry:
-                        docs[name] += " " + line.strip()
-        # "* ``name``: text" bullets (one or more names), continued on indented lines
-        for m in re.finditer(r"^\* ((?:``\w+``(?:, | and )?)+)(?: \([^)]*\))?:\s*(.+?)(?=^\* |^\S|\Z)",
-                             doc, re.M | re.S):
-            text = " ".join(m.group(2).split())
-            for name in re.findall(r"``(\w+)``", m.group(1)):
-                docs.setdefault(name, text)
-        for m in re.finditer(r"^    (\w+): [^=\n]+=[^#\n]*#\s*(.+)$", source, re.M):
-            docs[m.group(1)] = m.group(2).strip()
-    return docs
 
 
 class ParameterDeclarations:
@@ -86,10 +58,13 @@ class ParameterDeclarations:
         return value
 
     def declare_float(self, name: str, default: float, description: str,
-                      low: float | None = None, high: float | None = None, *, allow_nan: bool = False) -> float:
+                      low: float | None = None, high: float | None = None, *, allow_nan: bool = False,
+                      bounds: Bounds | None = None) -> float:
         """A double parameter; non-finite values stop the node, except NaN with ``allow_nan``
         (where NaN means "automatic", as the config's docs say)."""
-        value = float(self._declare(name, float(default), descriptor(description, low=low, high=high)))
+        if bounds is None and (low is not None or high is not None):
+            bounds = Bounds(low, high)
+        value = float(self._declare(name, float(default), descriptor(description, bounds=bounds)))
         if allow_nan and math.isnan(value):
             return value
         if not math.isfinite(value):
@@ -97,8 +72,10 @@ class ParameterDeclarations:
         return value
 
     def declare_int(self, name: str, default: int, description: str,
-                    low: int | None = None, high: int | None = None) -> int:
-        return int(self._declare(name, int(default), descriptor(description, low=low, high=high)))
+                    low: int | None = None, high: int | None = None, *, bounds: Bounds | None = None) -> int:
+        if bounds is None and (low is not None or high is not None):
+            bounds = Bounds(low, high)
+        return int(self._declare(name, int(default), descriptor(description, bounds=bounds, integer=True)))
 
     def declare_bool(self, name: str, default: bool, description: str) -> bool:
         return bool(self._declare(name, bool(default), descriptor(description)))
@@ -123,29 +100,32 @@ class ParameterDeclarations:
 
     def declare_config(self, prefix: str, defaults: Any, exclude: tuple[str, ...] = ()) -> Any:
         """Declare every scalar, bool, str and tuple/list field of the dataclass instance
-        ``defaults`` as ``<prefix>.<field>`` and return a validated copy with the values.
+        ``defaults`` as ``<prefix>.<field>``, with the documentation, range and choices of its
+        :func:`~vehicle_estimation.contract.settings.setting`, and return a validated copy
+        with the values.
 
         Fields that are None or arrays keep their defaults (they are not ROS-parameter
         shaped), as do the fields named in ``exclude`` (set by a node-level parameter).
         ``validate()`` errors become a :class:`ParameterError` that names the field.
         """
         values: dict[str, Any] = {}
-        field_docs = config_field_docs(type(defaults))
         for field in dataclasses.fields(defaults):
             if field.name in exclude:
                 continue
             value = getattr(defaults, field.name)
             name = f"{prefix}.{field.name}"
-            doc = field_docs.get(field.name) or f"{type(defaults).__name__}.{field.name}"
+            meta = field.metadata
+            doc = meta.get("doc") or f"{type(defaults).__name__}.{field.name}"
+            bounds = None if meta.get("each") else meta.get("bounds")
             if isinstance(value, bool):
                 values[field.name] = self.declare_bool(name, value, doc)
             elif isinstance(value, int):
-                values[field.name] = self.declare_int(name, value, doc)
+                values[field.name] = self.declare_int(name, value, doc, bounds=bounds)
             elif isinstance(value, float):
-                # A NaN default means "automatic" (validate() checks the rest).
-                values[field.name] = self.declare_float(name, value, doc, allow_nan=math.isnan(value))
+                values[field.name] = self.declare_float(name, value, doc, allow_nan=bool(meta.get("allow_nan")),
+                                                        bounds=bounds)
             elif isinstance(value, str):
-                values[field.name] = self.declare_str(name, value, doc)
+                values[field.name] = self.declare_str(name, value, doc, meta.get("choices"))
             elif isinstance(value, (tuple, list)) and all(
                     isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
                 values[field.name] = type(value)(self.declare_float_array(name, value, doc))
@@ -153,29 +133,10 @@ class ParameterDeclarations:
             config = dataclasses.replace(defaults, **values)
             config.validate()
         except (TypeError, ValueError) as exc:
-            raise ParameterError(f"{prefix}.*: {exc}") from exc
+            text = str(exc)
+            raise ParameterError(text if text.startswith(f"{prefix}.") else f"{prefix}.*: {text}") from exc
         return config
 
     def declare_vehicle(self) -> VehicleParams:
         """Declare ``vehicle.*`` with the ranges and docs of :class:`VehicleParams` and build it."""
-        defaults = VehicleParams()
-        values: dict[str, Any] = {}
-        for field in VehicleParams.field_names():
-            name = f"vehicle.{field}"
-            default = getattr(defaults, field)
-            ranged = VehicleParams.field_range(field)
-            if field in ("name", "driven_axle"):
-                choices = ("front", "rear", "all") if field == "driven_axle" else None
-                values[field] = self.declare_str(name, default, f"Vehicle {field.replace('_', ' ')}", choices)
-            elif field == "gear_ratios":
-                values[field] = self.declare_float_array(
-                    name, default, "Transmission ratios i_t,j, first gear first")
-            elif ranged is not None:
-                low, high, description = ranged
-                values[field] = self.declare_float(name, default, description, low, high)
-            else:
-                raise TypeError(f"VehicleParams.{field} has no range: declare it with _ranged()")
-        try:
-            return VehicleParams.from_mapping(values)
-        except ValueError as exc:
-            raise ParameterError(str(exc)) from exc
+        return self.declare_config("vehicle", VehicleParams())

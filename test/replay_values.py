@@ -1,0 +1,98 @@
+"""The numbers a replay published, for the regression oracle of ``test_end_to_end``.
+
+Every estimate message is decoded and flattened to the floats it carries (stamps, values,
+covariances); every ``STRIDE``-th message of a topic is kept, which follows every estimate
+through the drive at 0.5-1 s intervals (an error that matters does not vanish between two
+samples) and keeps the committed reference small. Comparing numbers instead of bytes lets a
+change that only reorders floating-point sums (a library's geodesy, a vectorised loop) pass,
+while any change that moves an estimate by more than ``RTOL`` fails.
+
+``python test/replay_values.py ESTIMATES_BAG OUT.npz`` writes a reference from a recorded
+replay; it uses rosbags and numpy only, so it can record the estimates of an older checkout.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+COMPARED_PREFIX = "/estimation/"
+STRIDE = 25
+#: Identical to the printed precision: 1e-9 of the value, or 1e-12 absolute near zero.
+RTOL, ATOL = 1e-9, 1e-12
+
+
+def _flatten(value, out: list[float]) -> None:
+    if isinstance(value, (bool, np.bool_)):
+        out.append(float(value))
+    elif isinstance(value, (int, float, np.integer, np.floating)):
+        out.append(float(value))
+    elif isinstance(value, np.ndarray):
+        if value.dtype.kind in "biuf":
+            out.extend(float(v) for v in value.ravel())
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            _flatten(item, out)
+    elif hasattr(value, "__dataclass_fields__"):
+        for name in value.__dataclass_fields__:
+            _flatten(getattr(value, name), out)
+
+
+def estimate_values(bag: Path) -> dict[str, np.ndarray]:
+    """``{topic: array (kept messages, floats per message)}``, plus ``topic#count``: the number
+    of messages, for every ``/estimation/*`` topic of a recorded replay."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    rows: dict[str, list[list[float]]] = {}
+    counts: dict[str, int] = {}
+    with AnyReader([Path(bag)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for conn, _, data in reader.messages():
+            if not conn.topic.startswith(COMPARED_PREFIX):
+                continue
+            i = counts.get(conn.topic, 0)
+            counts[conn.topic] = i + 1
+            if i % STRIDE == 0:
+                flat: list[float] = []
+                _flatten(reader.deserialize(data, conn.msgtype), flat)
+                rows.setdefault(conn.topic, []).append(flat)
+    values = {topic: np.array(r, dtype=float) for topic, r in rows.items()}
+    values.update({f"{topic}#count": np.array(n) for topic, n in counts.items()})
+    return values
+
+
+def differences(values: dict[str, np.ndarray], reference: dict[str, np.ndarray]) -> list[str]:
+    """What differs from the reference, one line per topic (empty: the same numbers)."""
+    problems = []
+    for key in sorted(set(values) | set(reference)):
+        if key not in values or key not in reference:
+            problems.append(f"{key}: only in {'the replay' if key in values else 'the reference'}")
+            continue
+        got, want = values[key], reference[key]
+        if got.shape != want.shape:
+            problems.append(f"{key}: shape {got.shape}, reference {want.shape}")
+            continue
+        bad = ~np.isclose(got, want, rtol=RTOL, atol=ATOL, equal_nan=True)
+        if np.any(bad):
+            i = np.argwhere(bad)[0]
+            problems.append(f"{key}: {int(bad.sum())} values differ, first at {tuple(int(k) for k in i)}: "
+                            f"{got[tuple(i)]!r} vs {want[tuple(i)]!r}")
+    return problems
+
+
+def save(values: dict[str, np.ndarray], path: Path) -> None:
+    # An archive member may not start with '/': topics are stored with ':' for '/'.
+    np.savez_compressed(path, **{key.replace("/", ":"): v for key, v in values.items()})
+
+
+def load(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as archive:
+        return {key.replace(":", "/"): archive[key] for key in archive.files}
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        raise SystemExit("usage: replay_values.py ESTIMATES_BAG OUT.npz")
+    save(estimate_values(Path(sys.argv[1])), Path(sys.argv[2]))

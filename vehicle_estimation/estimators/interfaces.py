@@ -1,0 +1,98 @@
+"""What a node may rely on from an estimator of each kind, whatever its method.
+
+A node builds its estimator through :mod:`vehicle_estimation.estimators.registry` from the
+``method`` (or ``filter``) parameter and then talks to it only through one of these
+protocols, so it never branches on the method's name; what a method adds to
+``/diagnostics`` comes from its :meth:`status`. The protocols are structural
+(:class:`typing.Protocol`): a core satisfies one by having the members, without inheriting.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Protocol, runtime_checkable
+
+import numpy as np
+
+
+@runtime_checkable
+class MassEstimator(Protocol):
+    """A vehicle-mass estimator (paper 003 RLS, paper 004 FFRLS, paper 000 TA-AEKF)."""
+
+    @property
+    def mass(self) -> float:
+        """The published mass [kg]."""
+
+    @property
+    def variance(self) -> float:
+        """Its variance [kg^2], honest: an error within 2 sigma about 95 % of the time."""
+
+    @property
+    def converged(self) -> bool: ...
+
+    @property
+    def samples_used(self) -> int: ...
+
+    @property
+    def rejected(self) -> Mapping[str, int]:
+        """Samples not used, per reason."""
+
+    def reset(self) -> None: ...
+
+    def state_dict(self) -> dict[str, float]:
+        """Everything needed to resume after a restart (:meth:`load_state_dict`)."""
+
+    def load_state_dict(self, state: Mapping[str, float]) -> None: ...
+
+    def status(self) -> dict[str, str]:
+        """What this method adds to ``/diagnostics`` (name -> text)."""
+
+
+@runtime_checkable
+class StateEstimator(Protocol):
+    """A vehicle-state filter: x = [vx, vy, r, ...] with sideslip (paper 004 CKF / VB-ACKF,
+    paper 002 AO-UKF)."""
+
+    initialised: bool
+    reinitialisations: int
+    last_event: str
+    #: Extra white-noise density on vx [(m/s^2)^2 s] the node adds while it knows the
+    #: acceleration input is worse than the model assumes (no slope, dead reckoning).
+    extra_vx_noise_density: float
+
+    @property
+    def x(self) -> np.ndarray: ...
+
+    @property
+    def P(self) -> np.ndarray: ...
+
+    @property
+    def sideslip(self) -> float: ...
+
+    @property
+    def sideslip_variance(self) -> float: ...
+
+    def step(self, t: float, inputs: Any, z: Any) -> bool:
+        """Predict to ``t`` with the chassis ``inputs`` and update with z = [ax, ay, r]."""
+
+    def update_speed(self, vx: float, variance: float) -> bool:
+        """Update vx with a measured speed (the CAN speed where no wheel speeds are)."""
+
+    def reset(self) -> None: ...
+
+    def status(self) -> dict[str, str]: ...
+
+
+@runtime_checkable
+class SlopeEstimator(Protocol):
+    """A road-slope estimate: grade [rad, + uphill], its variance and a converged flag."""
+
+    @property
+    def slope(self) -> float: ...
+
+    @property
+    def variance(self) -> float: ...
+
+    @property
+    def converged(self) -> bool: ...
+
+    def reset(self) -> None: ...
