@@ -2,15 +2,15 @@
 second replay of its first 30 s, whose estimates must be the first replay's, byte for byte; and
 the whole drive's estimates against a reference recorded before the last refactoring.
 
-The reference (``test/data/replay_reference.json``: message count and SHA-256 of every estimate
-topic) is the regression oracle of a change that must not move a number. A change that means to
-move the estimates rewrites it, and its commit says why:
+The reference (``test/data/replay_reference.npz``: every estimate topic's message count and the
+numbers of every 25th message, see ``replay_values.py``) is the regression oracle of a change that
+must not move a number; it was recorded before the layout redesign (commit 05fe98c). A change
+that means to move the estimates rewrites it, and its commit says why:
 ``VEHICLE_ESTIMATION_WRITE_REFERENCE=1 pytest test/test_end_to_end.py -k reference``.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
@@ -24,7 +24,7 @@ from rosbags.typesys import Stores, get_typestore
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
 COMPARED_PREFIX = "/estimation/"
-REFERENCE = Path(__file__).resolve().parent / "data" / "replay_reference.json"
+REFERENCE = Path(__file__).resolve().parent / "data" / "replay_reference.npz"
 
 
 @pytest.fixture(scope="module")
@@ -106,16 +106,12 @@ def test_estimates_track_ground_truth(replays, tmp_path):
     assert list(tmp_path.glob("*.png"))
 
 
-def _digests(estimates: dict[str, list[bytes]]) -> dict[str, dict]:
-    return {topic: {"messages": len(msgs), "sha256": hashlib.sha256(b"".join(msgs)).hexdigest()}
-            for topic, msgs in sorted(estimates.items())}
-
-
 def test_estimates_match_the_recorded_reference(replays):
-    digests = _digests(_estimates(replays[0][0]))
+    import replay_values
+
+    values = replay_values.estimate_values(replays[0][0])
     if os.environ.get("VEHICLE_ESTIMATION_WRITE_REFERENCE") == "1":
         REFERENCE.parent.mkdir(exist_ok=True)
-        REFERENCE.write_text(json.dumps(digests, indent=1) + "\n")
-    reference = json.loads(REFERENCE.read_text())
-    moved = [topic for topic in sorted(set(reference) | set(digests)) if reference.get(topic) != digests.get(topic)]
-    assert not moved, f"estimates differ from {REFERENCE.name} on {moved}: {digests}"
+        replay_values.save(values, REFERENCE)
+    moved = replay_values.differences(values, replay_values.load(REFERENCE))
+    assert not moved, f"estimates differ from {REFERENCE.name}:\n" + "\n".join(moved)
