@@ -126,21 +126,6 @@ def test_grid_search_needs_enough_samples():
         cal.grid_search(X, np.ones(5), np.ones((5, 4)))
 
 
-def test_window_helpers_match_the_mass_node():
-    rng = np.random.default_rng(7)
-    t = np.arange(0.0, 10.0, 0.01)
-    v = 3.0 + 0.7 * t + 0.01 * rng.standard_normal(t.size)
-    ids = cal.window_ids(t, 0.25)
-    n = int(ids.max()) + 1
-    slope = cal.window_slope(ids, t, v, n)
-    mean = cal.window_mean(ids, v, n)
-    for k in (0, 7, 30):
-        sel = ids == k
-        assert slope[k] == pytest.approx(np.polyfit(t[sel] - t[sel][0], v[sel], 1)[0])
-        assert mean[k] == pytest.approx(v[sel].mean())
-    assert np.all(np.isnan(cal.window_mean(ids, np.full(t.size, np.nan), n)))
-
-
 def test_debias_grade_recovers_a_constant_offset():
     rng = np.random.default_rng(8)
     ds = rng.uniform(0.0, 8.0, 5000)

@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from vehicle_estimation.estimators.mass.forgetting import RecursiveLeastSquares
 from vehicle_estimation.estimators.mass.mass_rls import (
     EngineTorqueRegression,
     LongitudinalMassEstimator,
     MassRLSConfig,
-    RecursiveLeastSquares,
     predict_gear,
 )
 from vehicle_estimation.contract.vehicle import load_vehicle_params

@@ -106,7 +106,7 @@ def test_fusion_node_tracks_a_straight_drive():
                 stream.append((topics.GNSS, fix_msg(T0 + ti, lat, lon, alt, status)))
         h.publish_stream(stream)
         assert h.wait_for(lambda: len(odom) > 0 and len(comp) > 0)
-        assert node.rejected["gnss:no_fix"] == 1
+        assert node.health.rejected["gnss:no_fix"] == 1
         last = odom[-1]
         t_last = last.header.stamp.sec + 1e-9 * last.header.stamp.nanosec - T0
         v_true = np.interp(t_last, t, v)

@@ -35,3 +35,15 @@ def test_replace_section_detects_staleness_and_missing_markers():
     assert replace_section(text, f"{BEGIN}\nnew\n{END}\n") == f"intro\n{BEGIN}\nnew\n{END}\noutro\n"
     with pytest.raises(ValueError, match="markers"):
         replace_section("no markers here", f"{BEGIN}\n{END}\n")
+
+
+def test_every_declared_parameter_is_documented_from_one_source():
+    """Each parameter's description comes from its ``setting()`` (or the node's own declaration),
+    never the ``Class.field`` stand-in of an undocumented field."""
+    import re
+
+    from vehicle_estimation.ros.paramdoc import collect
+
+    undocumented = [f"{node}: {row.name}" for node, rows in collect().items() for row in rows.values()
+                    if not row.description or re.fullmatch(r"[A-Z]\w*\.\w+", row.description)]
+    assert not undocumented, undocumented

@@ -583,11 +583,11 @@ def test_unreadable_messages_are_counted_not_fatal(kind):
         assert raw, "the node reads nothing raw"
         for name, sub in raw.items():
             good = serialize_message(sub.msg_type())
-            before = sum(v for k, v in node.rejected.items() if k.startswith(name + ":"))
+            before = sum(v for k, v in node.health.rejected.items() if k.startswith(name + ":"))
             for junk in (good[: len(good) // 2], b"\x00\x01\x00\x00" + b"\xff" * 7, b""):
                 sub.callback(junk)
-            after = sum(v for k, v in node.rejected.items() if k.startswith(name + ":"))
-            assert after - before == 3, f"{name}: {dict(node.rejected)}"
+            after = sum(v for k, v in node.health.rejected.items() if k.startswith(name + ":"))
+            assert after - before == 3, f"{name}: {dict(node.health.rejected)}"
     finally:
         node.destroy_node()
 
@@ -752,8 +752,8 @@ def test_gnss_outage_of_60_s_through_the_fusion_node():
             sub = subs["/" + topic]
             # what the executor hands the callback: CDR bytes where the node reads them raw
             sub.callback(serialize_message(msg) if sub.raw else msg)
-        assert node.rejected["gnss:no_fix"] == int(np.sum((g["t"] >= outage[0]) & (g["t"] < outage[1])))
-        assert not any(k.endswith("handler_error") for k in node.rejected)
+        assert node.health.rejected["gnss:no_fix"] == int(np.sum((g["t"] >= outage[0]) & (g["t"] < outage[1])))
+        assert not any(k.endswith("handler_error") for k in node.health.rejected)
         assert all(all(math.isfinite(x) for x in floats_in(m)) for m in odom)
 
         tr = sim.truth

@@ -111,7 +111,8 @@ def check_settings(config: Any, prefix: str = "", skip: Sequence[str] = ()) -> N
         meta = field.metadata
         name = f"{prefix}{field.name}"
         value = getattr(config, field.name)
-        default = field.default if field.default is not dataclasses.MISSING else None
+        default = (field.default if field.default is not dataclasses.MISSING
+                   else field.default_factory() if field.default_factory is not dataclasses.MISSING else None)
         if isinstance(default, bool):
             if not isinstance(value, bool):
                 raise ValueError(f"{name} must be true or false, got {value!r}")
@@ -120,7 +121,9 @@ def check_settings(config: Any, prefix: str = "", skip: Sequence[str] = ()) -> N
             if value not in meta["choices"]:
                 raise ValueError(f"{name} must be one of {list(meta['choices'])}, got {value!r}")
             continue
-        if isinstance(value, str):
+        if isinstance(default, str):
+            if not isinstance(value, str):
+                raise ValueError(f"{name} must be a string, got {value!r}")
             continue
         values = list(value) if meta.get("each") or isinstance(value, (list, tuple)) else [value]
         for i, item in enumerate(values):

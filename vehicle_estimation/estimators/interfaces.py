@@ -16,7 +16,24 @@ import numpy as np
 
 @runtime_checkable
 class MassEstimator(Protocol):
-    """A vehicle-mass estimator (paper 003 RLS, paper 004 FFRLS, paper 000 TA-AEKF)."""
+    """A vehicle-mass estimator (paper 003 RLS, paper 004 FFRLS, paper 000 TA-AEKF).
+
+    ``steps_on_windows``: True for estimators fed the means of each update window
+    (:mod:`~vehicle_estimation.estimators.mass.update_window`), with ``window_brake`` the brake
+    statistic they take ("max" or "mean"); False for one step per powertrain sample.
+    ``needs_heading``: :meth:`step` uses ``heading`` (the wind compensation).
+    """
+
+    steps_on_windows: bool
+    window_brake: str
+
+    @property
+    def needs_heading(self) -> bool: ...
+
+    def step(self, t: float, vx: float, ax: float, slope: float, **signals: float) -> bool:
+        """One sample (or window): speed [m/s], dv/dt [m/s^2], grade [rad]; the drive and
+        brake signals by name (drive_force, engine_torque, engine_speed, engine_load, gear,
+        brake_torque, heading, regressor_bias_variance, regressor_bias_correlation_s)."""
 
     @property
     def mass(self) -> float:

@@ -46,7 +46,15 @@ def _ffrls(vehicle: VehicleParams, config: Any) -> MassEstimator:
 
 def _ta_aekf(vehicle: VehicleParams, config: Any) -> MassEstimator:
     from vehicle_estimation.estimators.mass.ta_aekf import TaAekfMassEstimator
-    return TaAekfMassEstimator(vehicle, config)
+    if config.use_network:
+        import torch
+        # One window per inference: intra-op threads only contend with the other nodes for
+        # the cores (with two threads on two loaded cores an inference takes 120 ms, with one 0.6 ms).
+        torch.set_num_threads(1)
+    try:
+        return TaAekfMassEstimator(vehicle, config)
+    except ValueError as exc:   # the model files failed a check: name the parameter
+        raise ValueError(f"parameter 'ta_aekf.model_path': {exc}") from exc
 
 
 def _mass_rls_config() -> Any:

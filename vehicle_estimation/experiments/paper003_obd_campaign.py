@@ -53,6 +53,7 @@ import numpy as np
 
 from vehicle_estimation.estimators.mass import calibration as cal
 from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator, MassRLSConfig
+from vehicle_estimation.estimators.mass.update_window import window_edges, window_ids, window_max, window_mean, window_slope
 from vehicle_estimation.contract.vehicle import VehicleParams
 
 PERIOD = 0.25                      # update window [s]: 4 Hz CAN, the mass node's update_rate_hz
@@ -229,25 +230,25 @@ def drive_windows(result: Any, base: VehicleParams, seed: int) -> DriveWindows:
     """What the mass node would feed the core, window by window (see the module docstring)."""
     S, T = result.sensors, result.truth
     js, pt = S["joint_states"], S["powertrain"]
-    t0 = float(pt["t"][0])
-    n = int(math.floor((float(pt["t"][-1]) - t0) / PERIOD + 1e-9))
+    edges = window_edges(pt["t"], PERIOD)
+    n = len(edges)
     undriven = list(base.undriven_wheels)
     v_wheel = np.mean(js["velocity"][:, undriven], axis=1) * base.wheel_radius
-    ids_j = cal.window_ids(js["t"], PERIOD, t0)
-    ids_p = cal.window_ids(pt["t"], PERIOD, t0)
-    ids_t = cal.window_ids(T["t"], PERIOD, t0)
+    ids_j = window_ids(js["t"], edges)
+    ids_p = window_ids(pt["t"], edges)
+    ids_t = window_ids(T["t"], edges)
     rng = np.random.default_rng(seed)
     yaw = T["yaw"]
-    heading = np.arctan2(cal.window_mean(ids_t, np.sin(yaw), n), cal.window_mean(ids_t, np.cos(yaw), n))
+    heading = np.arctan2(window_mean(ids_t, np.sin(yaw), n), window_mean(ids_t, np.cos(yaw), n))
     heading = heading + rng.standard_normal(n) * math.radians(HEADING_NOISE_DEG)
-    v = cal.window_mean(ids_j, v_wheel, n)
+    v = window_mean(ids_j, v_wheel, n)
     return DriveWindows(
-        t=t0 + PERIOD * (np.arange(n) + 1), v=v, a=cal.window_slope(ids_j, js["t"], v_wheel, n),
-        slope=cal.window_mean(ids_t, observer_like_slope(T["t"], T["slope"], seed), n),
-        engine_speed=cal.window_mean(ids_p, pt["engine_speed"], n),
-        engine_load=cal.window_mean(ids_p, np.round(np.asarray(pt["load"]) * 255.0) / 255.0, n),
-        brake=cal.window_max(ids_j, js["effort"][:, :4].sum(axis=1), n),
-        heading=heading, distance=np.cumsum(np.nan_to_num(v) * PERIOD),
+        t=edges, v=v, a=window_slope(ids_j, js["t"], v_wheel, n),
+        slope=window_mean(ids_t, observer_like_slope(T["t"], T["slope"], seed), n),
+        engine_speed=window_mean(ids_p, pt["engine_speed"], n),
+        engine_load=window_mean(ids_p, np.round(np.asarray(pt["load"]) * 255.0) / 255.0, n),
+        brake=window_max(ids_j, js["effort"][:, :4].sum(axis=1), n),
+        heading=heading, distance=np.cumsum(np.nan_to_num(v) * np.diff(edges, prepend=edges[0] - PERIOD)),
         true_mass=float(result.scenario.vehicle.mass))
 
 

@@ -2,8 +2,8 @@
 
 rclpy turns every received message into Python message objects: a sensor_msgs/Imu is an Imu,
 a Header, a Time, a Quaternion and three Vector3, each built by generated ``__init__`` code
-(~18 µs an Imu on the CI machine). At 200 Hz on four nodes that was a fifth of the pipeline's
-CPU. The nodes subscribe to these types with ``raw=True`` instead and read the fields they use
+(~18 µs an Imu on a 2-core x86 machine). At 200 Hz on four nodes that is a fifth of the
+pipeline's CPU. The nodes subscribe to these types with ``raw=True`` instead and read the fields they use
 with one ``struct.unpack_from`` into small ``__slots__`` views that have the same attribute
 names as the messages (``msg.header.stamp.sec``, ``msg.linear_acceleration.x``, ...), so the
 handlers and conversions are unchanged and also accept real messages (tests publish those).

@@ -57,15 +57,9 @@ from sensor_msgs.msg import Imu, JointState, NavSatFix, NavSatStatus
 from std_msgs.msg import Float64
 
 from vehicle_estimation.contract import topics
-from vehicle_estimation.estimators.mass.mass_ffrls import (
-    FFRLSMassConfig,
-    FFRLSMassEstimator,
-)
-from vehicle_estimation.estimators.mass.mass_rls import (
-    LongitudinalMassEstimator,
-    MassRLSConfig,
-)
-from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig, TaAekfMassEstimator
+from vehicle_estimation.estimators.interfaces import MassEstimator
+from vehicle_estimation.estimators.mass.update_window import ACCEL_SOURCES, UpdateWindow
+from vehicle_estimation.estimators.registry import MASS_METHODS
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED,
     MalformedMessage,
@@ -89,135 +83,26 @@ from vehicle_estimation.ros.runtime.upstream import (
     is_fresh,
 )
 
-METHODS = ("rls", "ffrls", "ta_aekf")
 #: A powertrain reading above this multiple of what the vehicle's engine can deliver (maximum
 #: torque, through the lowest gear) is absurd, not a strong engine.
 POWERTRAIN_MARGIN = 3.0
-
-
-class UpdateWindow:
-    """Means of the inputs over one RLS update period (paper 003 ran its RLS on 4 Hz CAN data).
-
-    Averaging the force signals and the IMU acceleration over the *same* window filters both
-    sides of Eq. 4 alike, so a transient cannot appear on one side before the other, and it
-    keeps the forgetting factor's memory in seconds what the paper's was (lambda = 0.9995 at
-    4 Hz: about 500 s). Brake torque: the maximum for ``rls`` (one braking sample spoils the
-    window) and the mean for ``ffrls`` (it enters the regression). The gear takes the last
-    value, and a gear change inside the window is passed on as NaN so the core treats the
-    window as a shift. Speed samples of the vehicle-state node are kept with their stamps so
-    that their least-squares slope can serve as the acceleration.
-    """
-
-    FIELDS = ("vx", "slope", "bias_variance", "drive_force", "engine_torque", "engine_speed", "engine_load")
-
-    def __init__(self) -> None:
-        self.clear()
-
-    def clear(self) -> None:
-        self.start = math.nan
-        self.sums = dict.fromkeys(self.FIELDS, 0.0)
-        self.counts = dict.fromkeys(self.FIELDS, 0)
-        self.accel_sum = 0.0
-        self.accel_n = 0
-        self.wheel_t: list[float] = []
-        self.wheel_v: list[float] = []
-        self.state_t: list[float] = []
-        self.state_v: list[float] = []
-        self.brake = 0.0
-        self.brake_sum = 0.0
-        self.brake_n = 0
-        self.gears: set[float] = set()
-        self.slope_trusted = True
-
-    def add_accel(self, ax_specific: float) -> None:
-        self.accel_sum += ax_specific
-        self.accel_n += 1
-
-    def add(self, t: float, brake: float, gear: float, **values: float) -> None:
-        if math.isnan(self.start):
-            self.start = t
-        for key, value in values.items():
-            if math.isfinite(value):
-                self.sums[key] += value
-                self.counts[key] += 1
-        self.brake = max(self.brake, brake)
-        self.brake_sum += brake
-        self.brake_n += 1
-        if math.isfinite(gear):
-            self.gears.add(gear)
-
-    def add_wheel_speed(self, t: float, v: float) -> None:
-        self.wheel_t.append(t)
-        self.wheel_v.append(v)
-
-    def add_state_speed(self, t: float, v: float) -> None:
-        if not self.state_t or t > self.state_t[-1]:
-            self.state_t.append(t)
-            self.state_v.append(v)
-
-    @staticmethod
-    def _slope(t_list: list[float], v_list: list[float]) -> float:
-        if len(t_list) < 3:
-            return math.nan
-        t = np.asarray(t_list) - t_list[0]
-        if t[-1] <= 0.0:
-            return math.nan
-        return float(np.polyfit(t, np.asarray(v_list), 1)[0])
-
-    @property
-    def wheel_accel(self) -> float:
-        """Least-squares slope of the undriven wheels' speed over the window [m/s^2]."""
-        return self._slope(self.wheel_t, self.wheel_v)
-
-    @property
-    def state_accel(self) -> float:
-        """Least-squares slope of the vehicle-state node's vx over the window [m/s^2]."""
-        return self._slope(self.state_t, self.state_v)
-
-    @property
-    def brake_mean(self) -> float:
-        return self.brake_sum / self.brake_n if self.brake_n else 0.0
-
-    def mean(self, key: str) -> float:
-        return self.sums[key] / self.counts[key] if self.counts[key] else math.nan
-
-    @property
-    def accel(self) -> float:
-        return self.accel_sum / self.accel_n if self.accel_n else math.nan
-
-    @property
-    def gear(self) -> float:
-        return next(iter(self.gears)) if len(self.gears) == 1 else math.nan
 
 
 class MassNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("mass", **node_kwargs)
         self.vehicle = self.declare_vehicle()
-        self.method = self.declare_str("method", "ffrls", "Mass estimation method", METHODS)
+        self.method = self.declare_str("method", "ffrls", "Mass estimation method", tuple(MASS_METHODS))
         self.rate = self.declare_float("publish_rate_hz", 10.0, "Output rate [Hz]", 0.1, 1000.0)
         self.update_rate = self.declare_float(
             "update_rate_hz", 4.0,
             "RLS update rate; inputs are averaged over each period (paper 003: 4 Hz CAN)", 0.1, 1000.0)
-        self.core: LongitudinalMassEstimator | FFRLSMassEstimator | TaAekfMassEstimator
-        if self.method == "rls":
-            self.config = self.declare_config("mass", MassRLSConfig())
-            self.core = LongitudinalMassEstimator(self.vehicle, self.config)
-        elif self.method == "ta_aekf":
-            self.config = self.declare_config("ta_aekf", TaAekfConfig())
-            if self.config.use_network:
-                import torch
-                # One window per inference: torch's intra-op threads only contend with the other
-                # nodes for the cores (2 threads on a busy 2-core machine: 120 ms per inference,
-                # 1 thread: 0.6 ms).
-                torch.set_num_threads(1)
-            try:
-                self.core = TaAekfMassEstimator(self.vehicle, self.config)
-            except ValueError as exc:   # the model files failed a check: name the parameter
-                raise ParameterError(f"parameter 'ta_aekf.model_path': {exc}") from exc
-        else:
-            self.config = self.declare_config("ffrls", FFRLSMassConfig())
-            self.core = FFRLSMassEstimator(self.vehicle, self.config)
+        spec = MASS_METHODS[self.method]
+        self.config = self.declare_config(spec.config_prefix, spec.config_type())
+        try:
+            self.core: MassEstimator = spec.build(self.vehicle, self.config)
+        except ValueError as exc:
+            raise ParameterError(str(exc)) from exc
         self.persist_path = self.declare_str(
             "persist.path", "",
             "File the estimate and its covariance are saved to (atomically) and resumed from "
@@ -231,8 +116,8 @@ class MassNode(EstimatorNode):
         self.window = UpdateWindow()
         self.have_imu = False
         self.accel_source = self.declare_str(
-            "accel_source", "auto", "Longitudinal acceleration for the RLS (see _window_accel)",
-            ("auto", "wheel_speed", "imu", "vehicle_state"))
+            "accel_source", "auto", "Longitudinal acceleration for the RLS (see UpdateWindow.acceleration)",
+            ACCEL_SOURCES)
         self.speed_source = self.declare_str(
             "speed_source", "fusion",
             "Speed for the regression: fusion odometry, the vehicle-state node or the undriven "
@@ -274,7 +159,7 @@ class MassNode(EstimatorNode):
         self.pub_stamped = self.publisher(Vector3Stamped, topics.MASS_STAMPED)
         self.subscribe_primary(JointState, topics.POWERTRAIN, self.on_powertrain)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
-        if self.method != "ta_aekf":
+        if self.core.steps_on_windows:     # GNSS fixes say how long the regressor's bias lasts
             self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
         # The IMU (200 Hz or more) only feeds the acceleration for "imu", and "auto" without
         # wheel speeds: a node that never reads it does not pay for receiving it.
@@ -284,8 +169,7 @@ class MassNode(EstimatorNode):
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         # The bias also says how far a lasting error in the regressor may go (the variance).
         self.subscribe_imu_bias(self.bias)
-        self.needs_heading = self.method == "rls" and self.config.wind_compensation
-        if self.speed_source == "fusion" or self.needs_heading:
+        if self.speed_source == "fusion" or self.core.needs_heading:
             self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, odometry_entry)
         if "vehicle_state" in (self.speed_source, self.accel_source):
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
@@ -351,9 +235,7 @@ class MassNode(EstimatorNode):
         if not (slope_ok and slope_item.converged and slope_item.variance <= self.max_slope_var):
             self.window.slope_trusted = False
         self.set_missing("vehicle speed", speed is None)
-        if self.method == "ta_aekf":
-            # Algorithm 1 steps at every sample (0.01 s); the core averages its network
-            # features over blocks itself, and gaps restart its speed state.
+        if not self.core.steps_on_windows:
             if speed is not None and (slope_ok or not self.require_slope):
                 self.core.step(t, speed, math.nan, slope_item.value if slope_ok else 0.0,
                                drive_force=pt.drive_force, engine_torque=pt.engine_torque,
@@ -371,14 +253,16 @@ class MassNode(EstimatorNode):
                        bias_variance=self._regressor_bias_variance(t, slope_item if slope_ok else None),
                        drive_force=pt.drive_force, engine_torque=pt.engine_torque,
                        engine_speed=pt.engine_speed, engine_load=pt.engine_load)
-        if not math.isnan(window.start) and t - window.start >= 1.0 / self.update_rate - STAMP_TOLERANCE_S:
+        if window.closes(t, 1.0 / self.update_rate):
             slope = window.mean("slope")
-            ax = self._window_accel(window, slope)
+            ax, missing = window.acceleration(self.accel_source, slope, self.vehicle.gravity, self.bias.valid)
+            for what, is_missing in missing.items():
+                self.set_missing(what, is_missing)
             # No update on a guessed slope: a 1 % grade error is a 10 % error in phi at 1 m/s^2.
             ready = math.isfinite(ax) and (window.slope_trusted or not self.require_slope)
             if ready:
                 extra = {}
-                if self.needs_heading:
+                if self.core.needs_heading:
                     item = self.odom_speed.at(t)
                     fresh = item is not None and is_fresh(t, item[0])
                     self.set_missing("heading (estimation/odometry) for the wind", not fresh)
@@ -388,7 +272,7 @@ class MassNode(EstimatorNode):
                                engine_torque=window.mean("engine_torque"),
                                engine_speed=window.mean("engine_speed"),
                                engine_load=window.mean("engine_load"), gear=window.gear,
-                               brake_torque=window.brake if self.method == "rls" else window.brake_mean,
+                               brake_torque=window.brake if self.core.window_brake == "max" else window.brake_mean,
                                regressor_bias_variance=window.mean("bias_variance"),
                                regressor_bias_correlation_s=self.regressor_bias_correlation(t), **extra)
             window.clear()
@@ -412,31 +296,6 @@ class MassNode(EstimatorNode):
         if slope_item is None:
             return math.nan
         return (self.vehicle.gravity * math.cos(slope_item.value)) ** 2 * slope_item.variance
-
-    def _window_accel(self, window: UpdateWindow, slope: float) -> float:
-        """Longitudinal acceleration dv/dt over the window.
-
-        ``wheel_speed``: the slope of the undriven wheels' speed. It carries no gravity and no
-        body pitch, so neither the accelerometer bias nor the suspension's squat and dive
-        (which tilt the IMU by ~0.1 deg per m/s^2) reach the mass. ``imu``: paper 003's choice,
-        the mean bias-compensated specific force minus g sin(slope); needs the fusion's bias.
-        ``auto`` takes the wheels when they report and the IMU otherwise. ``vehicle_state``:
-        the slope of the vehicle-state node's vx (paper 004 Fig. 1: mass <- state).
-        """
-        if self.accel_source == "vehicle_state":
-            a = window.state_accel
-            self.set_missing("vehicle state speed", not math.isfinite(a))
-            return a
-        if self.accel_source in ("wheel_speed", "auto"):
-            a = window.wheel_accel
-            self.set_missing("undriven wheel speeds", not math.isfinite(a) and self.accel_source == "wheel_speed")
-            if math.isfinite(a) or self.accel_source == "wheel_speed":
-                return a
-        if not self.bias.valid:
-            self.set_missing("IMU bias (estimation/imu_bias)", True)
-            return math.nan
-        self.set_missing("IMU bias (estimation/imu_bias)", False)
-        return window.accel - self.vehicle.gravity * math.sin(slope)
 
     def _brake_at(self, t: float) -> float:
         """Total brake torque [N m] of the latest joint_states, 0 when it is stale."""
@@ -516,14 +375,7 @@ class MassNode(EstimatorNode):
             values["resumed from persisted state saved at"] = f"{self.resumed_from:.3f}"
         for k, v in self.core.rejected.items():
             values[f"samples skipped: {k}"] = str(v)
-        if isinstance(self.core, TaAekfMassEstimator):
-            values["confidence level tau (Eq. 19)"] = f"{self.core.last_tau:.3g}"
-            values["network mass [kg]"] = f"{self.core.last_network_mass:.1f}"
-        wind = getattr(self.core, "wind", None)
-        if wind is not None:
-            east, north = wind.wind_enu
-            values["wind east, north [m/s]"] = f"{east:.2f}, {north:.2f}"
-            values["wind from [deg]"] = f"{wind.wind_from_deg:.0f}"
+        values.update(self.core.status())
         return values
 
 

@@ -44,6 +44,8 @@ import yaml
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.mass import calibration as cal
+from vehicle_estimation.estimators.mass.update_window import (window_edges, window_ids, window_max, window_mean,
+                                                               window_slope)
 from vehicle_estimation.contract.vehicle import VehicleParams
 
 UPDATE_PERIOD_S = 0.25      # the paper's 4 Hz CAN rate and the mass node's update window
@@ -119,9 +121,8 @@ class PreparedWindows:
 
 def prepare_windows(sig: DriveSignals, base: VehicleParams, period: float = UPDATE_PERIOD_S) -> PreparedWindows:
     """Window means/slopes of a drive on the powertrain clock (see the module docstring)."""
-    t0 = float(sig.powertrain_t[0])
-    t_end = float(sig.powertrain_t[-1])
-    n = int(math.floor((t_end - t0) / period + 1e-9))
+    edges = window_edges(sig.powertrain_t, period)
+    n = len(edges)
     if n < 10:
         raise ValueError("the drive is too short for calibration")
     if sig.wheel_t is not None and sig.wheel_speed is not None:
@@ -129,23 +130,23 @@ def prepare_windows(sig: DriveSignals, base: VehicleParams, period: float = UPDA
         vv = np.mean(np.asarray(sig.wheel_speed, float)[:, list(base.undriven_wheels)], axis=1) * base.wheel_radius
     else:
         vt, vv = np.asarray(sig.speed_t, float), np.asarray(sig.speed, float)
-    ids_v = cal.window_ids(vt, period, t0)
-    v = cal.window_mean(ids_v, vv, n)
-    a = cal.window_slope(ids_v, vt, vv, n)
-    ids_p = cal.window_ids(sig.powertrain_t, period, t0)
-    we = cal.window_mean(ids_p, sig.engine_speed, n)
-    load = cal.window_mean(ids_p, sig.engine_load, n)
+    ids_v = window_ids(vt, edges)
+    v = window_mean(ids_v, vv, n)
+    a = window_slope(ids_v, vt, vv, n)
+    ids_p = window_ids(sig.powertrain_t, edges)
+    we = window_mean(ids_p, sig.engine_speed, n)
+    load = window_mean(ids_p, sig.engine_load, n)
     brake = np.zeros(n)
     if sig.brake_torque is not None and sig.wheel_t is not None:
-        brake = cal.window_max(cal.window_ids(sig.wheel_t, period, t0), sig.brake_torque, n)
-    t_win = t0 + period * (np.arange(n) + 1)
+        brake = window_max(window_ids(sig.wheel_t, edges), sig.brake_torque, n)
+    t_win = edges
     g = base.gravity
     offset = 0.0
     if sig.slope is not None and sig.slope_t is not None:
-        slope = cal.window_mean(cal.window_ids(sig.slope_t, period, t0), sig.slope, n)
+        slope = window_mean(window_ids(sig.slope_t, edges), sig.slope, n)
         source = "topic"
     elif sig.imu_t is not None and sig.accel_x is not None:
-        fx = cal.window_mean(cal.window_ids(sig.imu_t, period, t0), sig.accel_x, n)
+        fx = window_mean(window_ids(sig.imu_t, edges), sig.accel_x, n)
         sin_grade = (fx - a) / g
         dh = math.nan
         if sig.gnss_t is not None and sig.gnss_alt is not None:
@@ -156,7 +157,8 @@ def prepare_windows(sig: DriveSignals, base: VehicleParams, period: float = UPDA
                 ta, alt = ta[ok], alt[ok]
                 # mean of the first and last 10 s: GNSS height noise is metres per fix
                 dh = float(np.mean(alt[ta >= ta[-1] - 10.0]) - np.mean(alt[ta <= ta[0] + 10.0]))
-        sin_grade, offset = cal.debias_grade(sin_grade, np.nan_to_num(v) * period, dh if math.isfinite(dh) else 0.0)
+        step = np.diff(edges, prepend=edges[0] - period)
+        sin_grade, offset = cal.debias_grade(sin_grade, np.nan_to_num(v) * step, dh if math.isfinite(dh) else 0.0)
         slope = np.arcsin(np.clip(sin_grade, -0.5, 0.5))
         source = "kinematic (imu - dv/dt, GNSS height debias)" if math.isfinite(dh) else "kinematic (imu - dv/dt, closed-route debias)"
     else:
@@ -197,9 +199,9 @@ def calibrate_signals(sig: DriveSignals, mass: float, base: VehicleParams, *, n_
         raw_ratio = np.where(v_pt > 0.5, np.asarray(sig.engine_speed, float) / v_pt, np.nan)
     raw_gear = cal.assign_gears(raw_ratio, gears.gearings, GEAR_TOLERANCE).astype(float)
     n = win.t.size
-    ids = cal.window_ids(sig.powertrain_t, UPDATE_PERIOD_S, float(sig.powertrain_t[0]))
-    gmax = cal.window_max(ids, raw_gear, n, empty=0.0)
-    gmin = -cal.window_max(ids, -raw_gear, n, empty=0.0)
+    ids = window_ids(sig.powertrain_t, win.t)
+    gmax = window_max(ids, raw_gear, n, empty=0.0)
+    gmin = -window_max(ids, -raw_gear, n, empty=0.0)
     gear = np.where((gmax == gmin) & (gmin > 0), gmax, 0).astype(np.int64)
     prev = np.concatenate([[0], gear[:-1]])
     steady = (gear > 0) & (gear == prev)

@@ -14,6 +14,10 @@ from __future__ import annotations
 import math
 from collections import Counter
 
+#: Tolerance of comparisons between stamps in float seconds: near 1.7e9 s (any ROS epoch stamp)
+#: a float64 resolves only 2.4e-7 s, so a 10 ms period can come out as 9.99976 ms.
+STAMP_TOLERANCE_S = 1e-6
+
 
 class StepGuard:
     """Mixin: :meth:`admit` a sample, :meth:`note_reinitialised` after a gap reset."""
@@ -43,3 +47,19 @@ class StepGuard:
         """Count a re-initialisation after ``gap`` seconds without samples."""
         self.reinitialisations += 1
         self.last_event = f"re-initialised after a {gap:.3f} s gap"
+
+
+def finite_number(value: object) -> bool:
+    """True for a real number (int, float, NumPy scalar) that is finite; False for None, a
+    bool, NaN, infinity or anything that is not a number."""
+    if value is None or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(float(value))  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return False
+
+
+def all_finite(*values: object) -> bool:
+    """:func:`finite_number` of every value."""
+    return all(finite_number(v) for v in values)

@@ -26,11 +26,10 @@ Equation map (paper 003):
   for one grid point theta is ||(I - P)(b0 + B theta)||^2 = [1, theta]^T M [1, theta] with the
   5 x 5 matrix M = [b0, B]^T (I - P) [b0, B]. The 123 750 points of Table 5 are one einsum.
 
-Helpers for the data preparation the paper does on its 4 Hz CAN samples: :func:`window_ids`,
-:func:`window_mean`, :func:`window_slope` (means and least-squares slopes per update period, as
-the mass node's ``UpdateWindow``) and :func:`debias_grade` (removes a constant offset of a
-kinematic grade signal so that it integrates to the height change of the drive; an engineering
-choice for bags without a fusion grade, not from the paper).
+The 4 Hz update windows the data is prepared on are the mass node's own
+(:mod:`~vehicle_estimation.estimators.mass.update_window`). :func:`debias_grade` removes a
+constant offset of a kinematic grade signal so that it integrates to the height change of the
+drive (an engineering choice for bags without a fusion grade, not from the paper).
 """
 
 from __future__ import annotations
@@ -54,53 +53,7 @@ TABLE5_GRID: dict[str, tuple[float, float, float]] = {
 GRID_PARAMETERS = ("drag_area", "rolling_resistance", "engine_inertia", "wheel_inertia")
 
 
-# ---------------------------------------------------------------------------- 4 Hz windows
-def window_ids(t: np.ndarray, period: float, t0: float | None = None) -> np.ndarray:
-    """Index of the update window (length ``period`` [s], starting at ``t0``) of every stamp."""
-    t = np.asarray(t, dtype=float)
-    if not period > 0.0:
-        raise ValueError(f"period must be > 0, got {period!r}")
-    start = float(t[0]) if t0 is None else float(t0)
-    return np.floor((t - start) / period + 1e-9).astype(np.int64)
-
-
-def window_mean(ids: np.ndarray, x: np.ndarray, n_windows: int) -> np.ndarray:
-    """Mean of the finite ``x`` per window id (NaN for a window without finite samples)."""
-    x = np.asarray(x, dtype=float)
-    ok = np.isfinite(x) & (ids >= 0) & (ids < n_windows)
-    s = np.bincount(ids[ok], weights=x[ok], minlength=n_windows)
-    n = np.bincount(ids[ok], minlength=n_windows).astype(float)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, s / np.maximum(n, 1.0), np.nan)
-
-
-def window_max(ids: np.ndarray, x: np.ndarray, n_windows: int, empty: float = 0.0) -> np.ndarray:
-    """Maximum of the finite ``x`` per window id (``empty`` for a window without samples)."""
-    x = np.asarray(x, dtype=float)
-    ok = np.isfinite(x) & (ids >= 0) & (ids < n_windows)
-    out = np.full(n_windows, -np.inf)
-    np.maximum.at(out, ids[ok], x[ok])
-    return np.where(np.isfinite(out), out, empty)
-
-
-def window_slope(ids: np.ndarray, t: np.ndarray, x: np.ndarray, n_windows: int, min_samples: int = 3) -> np.ndarray:
-    """Least-squares slope dx/dt per window (NaN with fewer than ``min_samples`` samples), the
-    vectorised twin of the mass node's ``UpdateWindow._slope``."""
-    t = np.asarray(t, dtype=float)
-    x = np.asarray(x, dtype=float)
-    ok = np.isfinite(x) & np.isfinite(t) & (ids >= 0) & (ids < n_windows)
-    i, tt, xx = ids[ok], t[ok], x[ok]
-    n = np.bincount(i, minlength=n_windows).astype(float)
-    nn = np.maximum(n, 1.0)
-    mt = np.bincount(i, weights=tt, minlength=n_windows) / nn
-    mx = np.bincount(i, weights=xx, minlength=n_windows) / nn
-    dt = tt - mt[i]
-    sxy = np.bincount(i, weights=dt * (xx - mx[i]), minlength=n_windows)
-    sxx = np.bincount(i, weights=dt * dt, minlength=n_windows)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where((n >= min_samples) & (sxx > 0.0), sxy / np.where(sxx > 0.0, sxx, 1.0), np.nan)
-
-
+# ---------------------------------------------------------------------------- grade
 def debias_grade(sin_grade: np.ndarray, distance_step: np.ndarray, height_change: float) -> tuple[np.ndarray, float]:
     """Remove the constant offset c of a kinematic grade signal sin(alpha) = (f_x - dv/dt)/g
     (accelerometer bias and mounting pitch: c = b_x/g - pitch_mount) so that

@@ -61,9 +61,11 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from vehicle_estimation.estimators.mass.mass_rls import (
-    ForgettingMassEstimator, _finite, predict_gear, validate_forgetting_fields)
+from vehicle_estimation.contract.settings import setting
 from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
+from vehicle_estimation.estimators.common.guard import finite_number
+from vehicle_estimation.estimators.mass.forgetting import ForgettingConfig, ForgettingMassEstimator
+from vehicle_estimation.estimators.mass.mass_rls import predict_gear
 
 #: The paper's sampling time tau (Sec. 7.1), at which lambda_m = 0.998 was tuned [s].
 PAPER_SAMPLE_PERIOD_S = 0.01
@@ -99,7 +101,7 @@ def equivalent_forgetting_factor(forgetting_factor: float, reference_period_s: f
 
 
 @dataclasses.dataclass
-class FFRLSMassConfig:
+class FFRLSMassConfig(ForgettingConfig):
     """Tuning of :class:`FFRLSMassEstimator` (SI units).
 
     From the paper: ``forgetting_factor`` (lambda_m = 0.998, Sec. 7.1, at tau = 0.01 s) and
@@ -120,39 +122,13 @@ class FFRLSMassConfig:
       so the estimate is the mass rather than mass plus the equivalent rotating mass.
     """
 
-    forgetting_factor: float = 0.998        # lambda_m, Eq. (30); Sec. 7.1 (tau = 0.01 s)
-    initial_mass: float = 1300.0            # x_m,0 [kg], Sec. 7.1
-    initial_gain: float = 10.0              # P_m,0 [s^4/m^2] (not in the paper)
-    excitation_threshold: float = 0.3       # Eq. (31) threshold on |Omega_m| [m/s^2] (not in the paper)
-    min_speed: float = 2.0                  # [m/s]
-    max_abs_slope: float = 0.15             # [rad]
-    rotating_inertia_correction: bool = False
-    # --- convergence flag (over the last `convergence_window` accepted updates)
-    convergence_window: int = 200
-    convergence_max_cv: float = 0.01        # std/mean of the estimates in the window
-    convergence_max_rel_change: float = 0.01  # |last - first| / mean over the window
-    # --- residual variance and output sanity
-    initial_residual_std: float = 500.0     # prior sigma of the force residual [N]
-    min_mass: float = 300.0                 # published mass is clipped to [min_mass, max_mass]
-    max_mass: float = 60000.0
-
-    def validate(self) -> None:
-        """Raise ``ValueError`` naming the first invalid field."""
-        finite = validate_forgetting_fields(self)
-        for name in ("excitation_threshold", "min_speed", "max_abs_slope"):
-            if finite(name) < 0.0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
-        if self.max_abs_slope >= math.pi / 2:
-            raise ValueError(f"max_abs_slope must be below pi/2, got {self.max_abs_slope!r}")
-        if self.min_mass >= self.max_mass:
-            raise ValueError("min_mass must be below max_mass")
-        if not isinstance(self.rotating_inertia_correction, bool):
-            raise ValueError("rotating_inertia_correction must be a bool, "  # noqa: TRY004
-                             f"got {self.rotating_inertia_correction!r}")
-        window = self.convergence_window
-        if isinstance(window, bool) or not isinstance(window, (int, float)) or int(window) != window \
-                or window < 2:
-            raise ValueError(f"convergence_window must be an integer >= 2, got {window!r}")
+    forgetting_factor: float = setting(0.998, "lambda_m of Eq. (30); Sec. 7.1 (at tau = 0.01 s)",
+                                       low=0.0, high=1.0, low_open=True)
+    initial_mass: float = setting(1300.0, "x_m,0 [kg], Sec. 7.1", low=0.0, low_open=True)
+    initial_gain: float = setting(10.0, "P_m,0 [s^4/m^2] (not in the paper)", low=0.0, low_open=True)
+    excitation_threshold: float = setting(0.3, "Eq. (31) threshold on |Omega_m| [m/s^2] (not in the paper)",
+                                          low=0.0)
+    rotating_inertia_correction: bool = setting(False, "Take the rotating inertia out of y (not in the paper)")
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> FFRLSMassConfig:
@@ -174,6 +150,7 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
     """
 
     REJECT_REASONS = REJECT_REASONS
+    window_brake = "mean"    # Eq. (28) regresses the braking force: the window's mean
 
     def __init__(self, params: VehicleParams, config: FFRLSMassConfig | None = None) -> None:
         super().__init__(params, config if config is not None else FFRLSMassConfig())
@@ -188,7 +165,7 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
 
     # ------------------------------------------------------------------ update
     def _gear(self, gear: Any, engine_speed: Any, vx: float) -> int | None:
-        if _finite(gear):
+        if finite_number(gear):
             g = round(float(gear))
             return g if 1 <= g <= len(self.params.gear_ratios) else None   # neutral, reverse: none
         return predict_gear(engine_speed, vx, self.params)                 # paper 003 Eqs. (10)-(11)
@@ -232,12 +209,12 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
         cfg = self.config
         p = self.params
         values = (t, vx, ax, slope, brake_torque)
-        if not all(_finite(v) for v in values):
+        if not all(finite_number(v) for v in values):
             return self._reject("nan")
         t, vx, ax, slope, brake_torque = (float(v) for v in values)
         brake_torque = max(brake_torque, 0.0)   # a magnitude; sensor noise can dip below zero
 
-        current_gear = self._gear(gear, engine_speed, vx) if _finite(engine_torque) else None
+        current_gear = self._gear(gear, engine_speed, vx) if finite_number(engine_torque) else None
         self.last_gear = current_gear
 
         if vx < cfg.min_speed:
@@ -248,13 +225,13 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
         # Drive term of Eq. (28) and, for the optional correction, the rotating inertia
         # downstream of where that drive term is measured.
         wheel_inertia = p.wheel_inertia / p.wheel_radius ** 2
-        if _finite(drive_force):
+        if finite_number(drive_force):
             drive = float(drive_force)
             rotating_inertia = wheel_inertia
-        elif _finite(drive_torque):
+        elif finite_number(drive_torque):
             drive = float(drive_torque) / p.wheel_radius
             rotating_inertia = wheel_inertia
-        elif _finite(engine_torque):
+        elif finite_number(engine_torque):
             if current_gear is None:
                 return self._reject("gear")
             gearing = p.effective_gearing(current_gear)                  # i_g i_0 / R_t

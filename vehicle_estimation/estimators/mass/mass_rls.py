@@ -30,13 +30,15 @@ propulsion force (none from the Eq.-49 map at zero engine load), and clipping of
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
-from vehicle_estimation.estimators.mass.wind import WindEstimator, WindEstimatorConfig
+from vehicle_estimation.contract.settings import setting
 from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
+from vehicle_estimation.estimators.common.guard import finite_number
+from vehicle_estimation.estimators.mass.forgetting import ForgettingConfig, ForgettingMassEstimator
+from vehicle_estimation.estimators.mass.wind import WindEstimator, WindEstimatorConfig
 
 RPM_PER_RAD_S = 30.0 / math.pi
 
@@ -57,179 +59,64 @@ REJECT_REASONS = (
 DRIVE_FORCE_KINDS = ("wheel", "propulsion", "tractive")
 
 
-def _finite(value: Any) -> bool:
-    """True for a real number (int, float, NumPy scalar) that is finite."""
-    if value is None or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except (TypeError, ValueError):
-        return False
-
-
-def finite_field(config: Any, name: str) -> float:
-    """``config.<name>`` as a finite float, else ``ValueError`` naming the field."""
-    value = getattr(config, name)
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return value
-
-
-def validate_forgetting_fields(config: Any, more_positive: Sequence[str] = ()) -> Callable[[str], float]:
-    """Checks shared by the RLS and FFRLS configs (lambda in (0, 1], positive initial values,
-    bounds and convergence limits); returns the field reader for the caller's own checks."""
-
-    def finite(name: str) -> float:
-        return finite_field(config, name)
-
-    lam = finite("forgetting_factor")
-    if not 0.0 < lam <= 1.0:
-        raise ValueError(f"forgetting_factor must be in (0, 1], got {lam!r}")
-    for name in ("initial_mass", "initial_gain", "initial_residual_std", "min_mass", "max_mass",
-                 "convergence_max_cv", "convergence_max_rel_change", *more_positive):
-        if finite(name) <= 0.0:
-            raise ValueError(f"{name} must be > 0, got {getattr(config, name)!r}")
-    return finite
-
-
 @dataclasses.dataclass
-class MassRLSConfig:
+class MassRLSConfig(ForgettingConfig):
     """Tuning of :class:`LongitudinalMassEstimator` (SI units unless stated).
 
     The RLS values are the paper's (Sec. 3 and 7.4); the gates beyond ``min_accel`` are
     engineering choices documented in the module docstring.
     """
 
-    forgetting_factor: float = 0.9995       # lambda, Eq. (7)
-    initial_mass: float = 1000.0            # m(0) [kg], Sec. 3
-    initial_gain: float = 1000.0            # p(0) [s^4/m^2], Sec. 3
+    forgetting_factor: float = setting(0.9995, "Forgetting factor lambda, Eq. (7) (paper: 0.9995)",
+                                       low=0.0, high=1.0, low_open=True)
+    initial_mass: float = setting(1000.0, "Initial mass m(0) [kg], Sec. 3", low=0.0, low_open=True)
+    initial_gain: float = setting(1000.0, "Initial gain p(0) [s^4/m^2], Sec. 3", low=0.0, low_open=True)
     # --- gating (a sample must pass all to update the RLS)
-    min_speed: float = 2.0                  # [m/s]
-    min_accel: float = 0.0                  # the sample needs ax > min_accel [m/s^2] (Sec. 7.1)
-    max_abs_slope: float = 0.15             # [rad]
-    max_brake_torque: float = 1.0           # a sample counts only if brake_torque <= this [N m]
-    gear_shift_holdoff_s: float = 0.5       # [s] rejected after a gear change
-    min_phi: float = 0.05                   # |phi| of Eq. (5) must be >= this [m/s^2]
-    min_propulsion_force: float = 0.0       # F_p must be > this [N]
+    min_accel: float = setting(0.0, "A sample needs ax above this [m/s^2] (Sec. 7.1: only a > 0)")
+    max_brake_torque: float = setting(1.0, "A sample counts only with a total brake torque at most this [N m]",
+                                      low=0.0)
+    gear_shift_holdoff_s: float = setting(0.5, "Samples this long after a gear change are not used [s]",
+                                          low=0.0)
+    min_phi: float = setting(0.05, "|phi| of Eq. (5) must be at least this [m/s^2]", low=0.0)
+    min_propulsion_force: float = setting(0.0, "The propulsion force must be above this [N]")
     # --- gear prediction, Eqs. (10)-(11)
-    gear_ratio_tolerance: float = 0.10      # max relative |G_meas - G_j| / G_j, else slip
+    gear_ratio_tolerance: float = setting(0.10, "Max relative |G_meas - G_j| / G_j of Eq. (11), else the "
+                                          "clutch slips", low=0.0, low_open=True)
     # --- propulsion sources
-    drive_force_kind: str = "wheel"         # meaning of the drive_force input, see step()
-    torque_regression: list[float] = dataclasses.field(default_factory=list)  # Eq. (49) w0..wn
-    torque_regression_speed_unit: str = "rpm"  # unit of N_e in Eq. (49) ("rpm" as Table 6, or "rad/s")
-    # --- convergence flag (over the last `convergence_window` accepted updates)
-    convergence_window: int = 200
-    convergence_max_cv: float = 0.01        # std/mean of the estimates in the window
-    convergence_max_rel_change: float = 0.01  # |last - first| / mean over the window
-    # --- residual variance and output sanity
-    initial_residual_std: float = 500.0     # prior sigma of eps [N] for the variance estimate
-    min_mass: float = 300.0                 # published mass is clipped to [min_mass, max_mass]
-    max_mass: float = 60000.0
+    drive_force_kind: str = setting("wheel", "Meaning of the drive force input: wheel (driveshaft torque "
+                                    "over r), propulsion (eta T_e G of Eq. 1) or tractive (tyre-road force)",
+                                    choices=DRIVE_FORCE_KINDS)
+    torque_regression: list[float] = setting([], "Engine torque map w0..wn of Eq. (49) (calibrate writes it)")
+    torque_regression_speed_unit: str = setting("rpm", "Unit of N_e in Eq. (49) (rpm as Table 6, or rad/s)",
+                                                choices=("rpm", "rad/s"))
     # --- ambient wind (not in the paper, its Sec. 8 open problem): with wind_compensation the
-    # drag term of Eq. (6) uses the wind of estimators/mass/wind.py (EKF on [m, w_E, w_N] from the same
-    # samples) projected on the heading passed to step(heading=...); off: the paper's still air.
-    wind_compensation: bool = False        # estimate the wind online (estimators/mass/wind.py) and compensate the drag; needs a heading
-    wind_force_std: float = 150.0           # WindEstimatorConfig.force_std [N]
-    wind_random_walk: float = 0.02          # WindEstimatorConfig.random_walk [m/s per sqrt(s)]
-    wind_mass_random_walk: float = 5.0      # WindEstimatorConfig.mass_random_walk [kg per sqrt(s)]
-    wind_initial_std: float = 6.0           # WindEstimatorConfig.initial_wind_std [m/s]
-    wind_min_speed: float = 8.0             # WindEstimatorConfig.min_speed [m/s]
+    # drag term of Eq. (6) uses the wind of estimators/mass/wind.py (EKF on [m, w_E, w_N] from
+    # the same samples) projected on the heading passed to step(heading=...); off: still air.
+    wind_compensation: bool = setting(False, "Estimate the wind online (estimators/mass/wind.py) and "
+                                      "compensate the drag; needs a heading")
+    wind_force_std: float = setting(150.0, "WindEstimatorConfig.force_std [N]", low=0.0, low_open=True)
+    wind_random_walk: float = setting(0.02, "WindEstimatorConfig.random_walk [m/s per sqrt(s)]", low=0.0)
+    wind_mass_random_walk: float = setting(5.0, "WindEstimatorConfig.mass_random_walk [kg per sqrt(s)]",
+                                           low=0.0)
+    wind_initial_std: float = setting(6.0, "WindEstimatorConfig.initial_wind_std [m/s]", low=0.0, low_open=True)
+    wind_min_speed: float = setting(8.0, "WindEstimatorConfig.min_speed [m/s]", low=0.0)
 
     def wind_config(self) -> WindEstimatorConfig:
-        """The wind estimator's config from the ``wind_*`` fields (validated, errors name them)."""
-        config = WindEstimatorConfig(force_std=self.wind_force_std, random_walk=self.wind_random_walk,
-                                     mass_random_walk=self.wind_mass_random_walk,
-                                     initial_wind_std=self.wind_initial_std, min_speed=self.wind_min_speed)
-        names = {"force_std": "wind_force_std", "random_walk": "wind_random_walk",
-                 "mass_random_walk": "wind_mass_random_walk", "initial_wind_std": "wind_initial_std",
-                 "min_speed": "wind_min_speed"}
-        try:
-            config.validate()
-        except ValueError as exc:
-            msg = str(exc)
-            field = msg.split(" ", 1)[0]
-            raise ValueError(msg.replace(field, names.get(field, field), 1)) from None
-        return config
+        """The wind estimator's config from the ``wind_*`` fields."""
+        return WindEstimatorConfig(force_std=self.wind_force_std, random_walk=self.wind_random_walk,
+                                   mass_random_walk=self.wind_mass_random_walk,
+                                   initial_wind_std=self.wind_initial_std, min_speed=self.wind_min_speed)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        finite = validate_forgetting_fields(self, ("gear_ratio_tolerance",))
-        if not isinstance(self.wind_compensation, bool):
-            raise ValueError(f"wind_compensation must be a bool, got {self.wind_compensation!r}")
-        self.wind_config()
-        for name in ("min_speed", "max_abs_slope", "max_brake_torque", "gear_shift_holdoff_s",
-                     "min_phi"):
-            if finite(name) < 0.0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
-        finite("min_accel")
-        finite("min_propulsion_force")
-        if self.max_abs_slope >= math.pi / 2:
-            raise ValueError(f"max_abs_slope must be below pi/2, got {self.max_abs_slope!r}")
-        if self.min_mass >= self.max_mass:
-            raise ValueError("min_mass must be below max_mass")
-        if isinstance(self.convergence_window, bool) or int(self.convergence_window) != self.convergence_window \
-                or self.convergence_window < 2:
-            raise ValueError(f"convergence_window must be an integer >= 2, got {self.convergence_window!r}")
-        if self.drive_force_kind not in DRIVE_FORCE_KINDS:
-            raise ValueError(f"drive_force_kind must be one of {DRIVE_FORCE_KINDS}, got {self.drive_force_kind!r}")
-        if self.torque_regression_speed_unit not in ("rpm", "rad/s"):
-            raise ValueError("torque_regression_speed_unit must be 'rpm' or 'rad/s', "
-                             f"got {self.torque_regression_speed_unit!r}")
-        coeffs = list(self.torque_regression or [])
-        if len(coeffs) == 1:
+        super().validate()
+        if len(self.torque_regression or []) == 1:
             raise ValueError("torque_regression needs at least [w0, w1] (Eq. 49), got one coefficient")
-        for i, w in enumerate(coeffs):
-            if not math.isfinite(float(w)):
-                raise ValueError(f"torque_regression[{i}] must be finite, got {w!r}")
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "MassRLSConfig":
         """Build from a flat mapping (e.g. ROS parameters); unknown keys are an error."""
         return dataclass_from_mapping(cls, values, "unknown mass estimator parameter {key!r}")
-
-
-class RecursiveLeastSquares:
-    """Scalar-parameter RLS with exponential forgetting, paper 003 Eqs. (7)-(9).
-
-    Model ``phi·theta = y + eps``. One :meth:`update` does
-
-    * eps  = y - phi·theta(t-1)                                          (Eq. 9)
-    * p(t) = [p(t-1) - p(t-1)^2 phi^2 / (lambda + phi^2 p(t-1))] / lambda  (Eq. 7)
-    * theta(t) = theta(t-1) + p(t)·phi·eps                               (Eq. 8)
-    """
-
-    def __init__(self, forgetting_factor: float, theta0: float, p0: float) -> None:
-        lam = float(forgetting_factor)
-        if not (math.isfinite(lam) and 0.0 < lam <= 1.0):
-            raise ValueError(f"forgetting_factor must be in (0, 1], got {forgetting_factor!r}")
-        if not (math.isfinite(p0) and p0 > 0.0):
-            raise ValueError(f"p0 must be finite and > 0, got {p0!r}")
-        if not math.isfinite(theta0):
-            raise ValueError(f"theta0 must be finite, got {theta0!r}")
-        self.forgetting_factor = lam
-        self.theta = float(theta0)
-        self.p = float(p0)
-        self.last_residual = math.nan   # a-priori residual eps of Eq. (9)
-
-    def update(self, phi: float, y: float) -> float:
-        """Apply one sample; return the updated estimate theta(t)."""
-        phi = float(phi)
-        y = float(y)
-        if not (math.isfinite(phi) and math.isfinite(y)):
-            raise ValueError(f"RLS sample must be finite, got phi={phi!r}, y={y!r}")
-        lam = self.forgetting_factor
-        p_prev = self.p
-        eps = y - phi * self.theta                                            # Eq. (9)
-        self.p = (p_prev - (p_prev * phi * phi * p_prev) / (lam + phi * p_prev * phi)) / lam  # Eq. (7)
-        self.theta = self.theta + self.p * phi * eps                          # Eq. (8)
-        self.last_residual = eps
-        return self.theta
 
 
 def predict_gear(engine_speed: float, vehicle_speed: float, params: VehicleParams, *,
@@ -307,170 +194,6 @@ class EngineTorqueRegression:
         return total
 
 
-class ForgettingMassEstimator:
-    """What the least-squares mass estimators share (paper 003's RLS, paper 004's FFRLS): the
-    scalar RLS with forgetting, the residual-variance and convergence statistics, the clipped
-    output, the rejection counters and persistence. Subclasses set :attr:`REJECT_REASONS`,
-    implement ``step`` and call :meth:`_accepted` after each update.
-
-    Variance: ``p·sigma^2``, where p is the RLS gain (for unit-weighted least squares
-    p ~ (sum lambda^k phi_k^2)^-1, so p·sigma^2 is the classical parameter variance) and
-    sigma^2 an exponentially weighted (same lambda) mean of the squared a-priori residuals,
-    seeded with ``initial_residual_std^2`` at weight one; plus the share of a lasting
-    regressor error. The residuals cannot show an error that stays: an accelerometer bias
-    that no GNSS has observed is in the fusion's grade, in the observer's slope and in the
-    IMU acceleration alike, and biases the regressor phi by d_b on every sample. The estimate
-    is then off by d_m = -m p sum(lambda^k phi_k d_b,k). With the bias variance the caller
-    gives (``regressor_bias_variance``: the fusion's bias variance) and the bias error taken
-    as a first-order Gauss-Markov process of correlation time tau
-    (``regressor_bias_correlation_s``: infinite while no GNSS aids the fusion, which then holds
-    its bias; seconds while GNSS keeps correcting it), that is a 'consider' term
-    (m p)^2 V with V = sum_j sum_k w_j w_k rho^|t_j - t_k|, w_k = lambda^(n-k) |phi_k| sigma_b,k,
-    computed recursively (|phi_k|: conservative where phi changes sign). Fully correlated
-    (tau infinite) V = S^2 with S = sum w_k. On FASTSim's hills without GNSS the mass was 3 %
-    off while p·sigma^2 said 0.2 %; with GNSS the fully correlated term said 6x the error.
-    """
-
-    REJECT_REASONS: tuple[str, ...] = ()
-
-    def __init__(self, params: VehicleParams, config: Any) -> None:
-        self.params = params
-        self.config = config
-        self.config.validate()
-        self.reset()
-
-    # ------------------------------------------------------------------ state
-    def reset(self, mass: float | None = None, gain: float | None = None) -> None:
-        """Restart the RLS at ``mass``/``gain`` (config defaults) and clear all statistics."""
-        cfg = self.config
-        m0 = cfg.initial_mass if mass is None else float(mass)
-        p0 = cfg.initial_gain if gain is None else float(gain)
-        if not (math.isfinite(m0) and m0 > 0.0):
-            raise ValueError(f"reset mass must be finite and > 0, got {mass!r}")
-        if not (math.isfinite(p0) and p0 > 0.0):
-            raise ValueError(f"reset gain must be finite and > 0, got {gain!r}")
-        self.rls = RecursiveLeastSquares(cfg.forgetting_factor, m0, p0)
-        self._res_weight = 1.0
-        self._res_sq = cfg.initial_residual_std ** 2
-        self._bias_lever = 0.0       # sum_k w_k rho^(t_n - t_k) (S when fully correlated) [m/s^2]
-        self._bias_spread = 0.0      # V of the class docstring [m^2/s^4]
-        self._bias_t = math.nan      # stamp of the last accepted sample [s]
-        self._window: collections.deque[float] = collections.deque(maxlen=int(cfg.convergence_window))
-        self.samples_used = 0
-        self.rejected: dict[str, int] = {reason: 0 for reason in self.REJECT_REASONS}
-        self.last_phi = math.nan       # regressor of the last accepted sample [m/s^2]
-        self.last_y = math.nan         # output of the last accepted sample [N]
-        self.last_gear: int | None = None
-        self._reset_method_state()
-
-    def _reset_method_state(self) -> None:
-        """Subclass hook: clear what only the subclass keeps."""
-
-    def state_dict(self) -> dict[str, float]:
-        """Plain floats for persistence (e.g. a YAML/JSON file between drives)."""
-        return {
-            "mass": float(self.rls.theta),
-            "gain": float(self.rls.p),
-            "residual_weight": float(self._res_weight),
-            "residual_sq": float(self._res_sq),
-            "bias_lever": float(self._bias_lever),
-            "bias_spread": float(self._bias_spread),
-            "samples_used": float(self.samples_used),
-        }
-
-    def load_state_dict(self, state: Mapping[str, float]) -> None:
-        """Restore :meth:`state_dict` output; raises ``ValueError`` on missing/invalid values."""
-        try:
-            mass = float(state["mass"])
-            gain = float(state["gain"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"mass estimator state needs finite 'mass' and 'gain': {exc}") from None
-        self.reset(mass=mass, gain=gain)
-        weight = float(state.get("residual_weight", 1.0))
-        sq = float(state.get("residual_sq", self.config.initial_residual_std ** 2))
-        if math.isfinite(weight) and weight > 0.0 and math.isfinite(sq) and sq >= 0.0:
-            self._res_weight, self._res_sq = weight, sq
-        lever = float(state.get("bias_lever", 0.0))
-        self._bias_lever = lever if math.isfinite(lever) and lever >= 0.0 else 0.0
-        spread = float(state.get("bias_spread", self._bias_lever ** 2))   # older files: fully correlated
-        self._bias_spread = spread if math.isfinite(spread) and spread >= 0.0 else self._bias_lever ** 2
-        used = float(state.get("samples_used", 0.0))
-        self.samples_used = int(used) if math.isfinite(used) and used >= 0 else 0
-
-    # ------------------------------------------------------------------ outputs
-    @property
-    def mass(self) -> float:
-        """Estimated mass [kg], clipped to [min_mass, max_mass] (the RLS state is not)."""
-        return min(max(self.rls.theta, self.config.min_mass), self.config.max_mass)
-
-    @property
-    def raw_mass(self) -> float:
-        return self.rls.theta
-
-    @property
-    def gain(self) -> float:
-        return self.rls.p
-
-    @property
-    def residual_variance(self) -> float:
-        """sigma^2 of the residual eps [N^2] (exponentially weighted, see class docstring)."""
-        return self._res_sq / self._res_weight
-
-    @property
-    def bias_variance(self) -> float:
-        """The share of :attr:`variance` that a lasting regressor error leaves [kg^2]."""
-        return (self.mass * self.rls.p) ** 2 * self._bias_spread
-
-    @property
-    def variance(self) -> float:
-        """Estimated variance of the mass [kg^2] = p·sigma^2 + the lasting error's share."""
-        return self.rls.p * self.residual_variance + self.bias_variance
-
-    @property
-    def converged(self) -> bool:
-        """True when the last ``convergence_window`` updates have a coefficient of variation
-        below ``convergence_max_cv`` and moved by less than ``convergence_max_rel_change``."""
-        window = self._window
-        assert window.maxlen is not None   # built with maxlen=convergence_window
-        if len(window) < window.maxlen:
-            return False
-        n = len(window)
-        mean = sum(window) / n
-        if mean <= 0.0:
-            return False
-        std = math.sqrt(max(sum((x - mean) ** 2 for x in window) / n, 0.0))
-        return (std / mean < self.config.convergence_max_cv
-                and abs(window[-1] - window[0]) / mean < self.config.convergence_max_rel_change)
-
-    # ------------------------------------------------------------------ update
-    def _reject(self, reason: str) -> bool:
-        self.rejected[reason] += 1
-        return False
-
-    def _accepted(self, t: float, phi: float, y: float, residual_sq: float,
-                  regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf) -> bool:
-        """Book-keeping after an RLS update at ``t`` with a-priori squared residual
-        ``residual_sq``; ``regressor_bias_variance`` [m^2/s^4] and its correlation time
-        ``regressor_bias_correlation_s`` [s] feed the lasting error's share of the variance."""
-        lam = self.config.forgetting_factor
-        self._res_weight = lam * self._res_weight + 1.0
-        self._res_sq = lam * self._res_sq + residual_sq
-        var = regressor_bias_variance
-        u = abs(phi) * (math.sqrt(var) if _finite(var) and var > 0.0 else 0.0)
-        tau, dt = regressor_bias_correlation_s, t - self._bias_t
-        # rho = exp(-dt / tau): 1 for a bias that lasts (tau infinite, or the first sample)
-        rho = math.exp(-dt / tau) if math.isfinite(dt) and dt > 0.0 and tau < math.inf else 1.0
-        carried = lam * rho * self._bias_lever
-        self._bias_spread = lam * lam * self._bias_spread + u * u + 2.0 * u * carried
-        self._bias_lever = carried + u
-        self._bias_t = t
-        self._window.append(self.rls.theta)
-        self.samples_used += 1
-        self.last_phi, self.last_y = phi, y
-        return True
-
-
-
 class LongitudinalMassEstimator(ForgettingMassEstimator):
     """Online mass estimate from the longitudinal dynamics, paper 003 Eqs. (4)-(9) with gating.
 
@@ -499,9 +222,20 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             self.wind = WindEstimator(self.params.air_density, self.params.drag_area, self.config.initial_mass,
                                       self.config.wind_config())
 
+    @property
+    def needs_heading(self) -> bool:  # type: ignore[override]
+        return bool(self.config.wind_compensation)
+
+    def status(self) -> dict[str, str]:
+        if self.wind is None:
+            return {}
+        east, north = self.wind.wind_enu
+        return {"wind east, north [m/s]": f"{east:.2f}, {north:.2f}",
+                "wind from [deg]": f"{self.wind.wind_from_deg:.0f}"}
+
     def _gear(self, gear: float, engine_speed: float, vx: float) -> int | None:
         n_gears = len(self.params.gear_ratios)
-        if _finite(gear):
+        if finite_number(gear):
             g = int(round(gear))
             return g if 1 <= g <= n_gears else None   # 0 (neutral), reverse: no gear
         return predict_gear(engine_speed, vx, self.params, tolerance=self.config.gear_ratio_tolerance)
@@ -542,7 +276,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         cfg = self.config
         p = self.params
         vals = (t, vx, ax, slope)
-        if not all(_finite(v) for v in vals):
+        if not all(finite_number(v) for v in vals):
             return self._reject("nan")
         t, vx, ax, slope = (float(v) for v in vals)
 
@@ -560,12 +294,12 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             return self._reject("accel")
         if abs(slope) > cfg.max_abs_slope:
             return self._reject("slope")
-        if _finite(brake_torque) and float(brake_torque) > cfg.max_brake_torque:
+        if finite_number(brake_torque) and float(brake_torque) > cfg.max_brake_torque:
             return self._reject("braking")
 
-        have_drive = _finite(drive_force)
-        have_torque = _finite(engine_torque)
-        have_reg = self.regression is not None and _finite(engine_load) and _finite(engine_speed)
+        have_drive = finite_number(drive_force)
+        have_torque = finite_number(engine_torque)
+        have_reg = self.regression is not None and finite_number(engine_load) and finite_number(engine_speed)
         if not (have_drive or have_torque or have_reg):
             return self._reject("no_force")
 

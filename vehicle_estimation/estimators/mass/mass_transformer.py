@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from vehicle_estimation.contract.settings import check_settings, setting
 from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, TAU_FEATURES, confidence_level
 
 KINDS = ("transformer", "mlp", "lstm")
@@ -46,31 +47,22 @@ class ModelSpec:
     width of each encoder layer), ``dropout`` (paper 0.3). MLP and LSTM: ``hidden`` width and
     ``n_layers``."""
 
-    kind: str = "transformer"
-    window: int = 10
-    block_steps: int = 10
-    n_features: int = len(NN_FEATURES)
-    d_model: int = 64
-    n_heads: int = 16
-    n_layers: int = 3
-    d_ff: int = 128
-    dropout: float = 0.3
-    hidden: int = 64
+    kind: str = setting("transformer", "Network kind", choices=KINDS)
+    window: int = setting(10, "Blocks per input window w", low=1)
+    block_steps: int = setting(10, "Samples averaged into one block", low=1)
+    n_features: int = setting(len(NN_FEATURES), "Input features per block (Eq. 15)",
+                              low=len(NN_FEATURES), high=len(NN_FEATURES))
+    d_model: int = setting(64, "Transformer width n", low=1)
+    n_heads: int = setting(16, "Attention heads h of Eq. 2 (paper 16)", low=1)
+    n_layers: int = setting(3, "Encoder (or MLP/LSTM) layers (paper 3)", low=1)
+    d_ff: int = setting(128, "Feed-forward width of each encoder layer", low=1)
+    dropout: float = setting(0.3, "Dropout (paper 0.3)", low=0.0, high=1.0, high_open=True)
+    hidden: int = setting(64, "MLP and LSTM hidden width", low=1)
 
     def validate(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"kind must be one of {KINDS}, got {self.kind!r}")
-        for name in ("window", "block_steps", "n_features", "d_model", "n_heads", "n_layers",
-                     "d_ff", "hidden"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if self.n_features != len(NN_FEATURES):
-            raise ValueError(f"n_features must be {len(NN_FEATURES)} (Eq. 15), got {self.n_features}")
+        check_settings(self)
         if self.kind == "transformer" and self.d_model % self.n_heads:
             raise ValueError(f"d_model ({self.d_model}) must be a multiple of n_heads ({self.n_heads})")
-        if not (isinstance(self.dropout, float) and 0.0 <= self.dropout < 1.0):
-            raise ValueError(f"dropout must be a float in [0, 1), got {self.dropout!r}")
 
 
 class TransformerMassNet(nn.Module):

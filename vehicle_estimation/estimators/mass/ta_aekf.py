@@ -54,7 +54,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from vehicle_estimation.estimators.mass.mass_rls import _finite
+from vehicle_estimation.contract.settings import check_settings, setting
+from vehicle_estimation.estimators.common.guard import finite_number
 from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
 from vehicle_estimation.estimators.mass.ta_features import FeatureBlocks, eq15_features
 from vehicle_estimation.paths import MODELS_DIR
@@ -189,16 +190,16 @@ def drive_force_input(params: VehicleParams, vx: float, drive_force: Any, engine
     """(F_t, dF_t/dv) from the first available source (module docstring), less T_b / r;
     None when no source is available."""
     p = params
-    brake = max(float(brake_torque), 0.0) / p.wheel_radius if _finite(brake_torque) else 0.0
-    if _finite(drive_force):
+    brake = max(float(brake_torque), 0.0) / p.wheel_radius if finite_number(brake_torque) else 0.0
+    if finite_number(drive_force):
         return float(drive_force) - brake, 0.0
-    if not _finite(engine_torque):
+    if not finite_number(engine_torque):
         return None
     torque = float(engine_torque)
-    if _finite(gear) and 1 <= round(float(gear)) <= len(p.gear_ratios):
+    if finite_number(gear) and 1 <= round(float(gear)) <= len(p.gear_ratios):
         force = torque * p.driveline_efficiency * p.effective_gearing(int(round(float(gear))))
         return force - brake, 0.0
-    if _finite(engine_speed) and vx >= max(min_speed, 0.5):
+    if finite_number(engine_speed) and vx >= max(min_speed, 0.5):
         force = p.driveline_efficiency * torque * float(engine_speed) / vx         # Eqs. (7), (13)
         return force - brake, -force / vx
     return None
@@ -246,71 +247,50 @@ class TaAekfConfig:
       drag a car's estimate to truck masses; once the physics has converged the gate stops it.
     """
 
-    model_path: str = ""
-    use_network: bool = True
-    fixed_tau: float = math.nan
-    inference_period_steps: int = 10
-    initial_mass: float = math.nan
-    initial_mass_rel_std: float = 1.0
-    velocity_noise_std: float = 0.05
-    accel_noise_density: float = 0.05
-    mass_walk_rel: float = 2e-4
-    network_rel_std: float = math.nan
-    network_std_scale: float = 3.0        # R_nn inflation for correlated network outputs (see network_rel_std)
-    network_gate_sigma: float = 4.0
-    accel_from_speed: bool = True
-    accel_fit_samples: int = 20           # speeds in the least-squares a_x feature (20 = 0.2 s at 100 Hz)
-    min_speed: float = 1.0              # [m/s] below it the filter only tracks v
-    max_step_s: float = 0.5             # larger time steps restart v from the measurement
-    max_abs_slope: float = 0.35         # [rad]
-    max_abs_accel: float = 15.0         # [m/s^2]
-    max_speed: float = 100.0            # [m/s]
-    max_abs_force: float = 1.0e6        # [N]
+    model_path: str = setting("", "Stem of the model files (<stem>.safetensors + <stem>.json); empty: the "
+                              "shipped model")
+    use_network: bool = setting(True, "False runs the EKF alone (the paper's EKF row), no torch needed")
+    fixed_tau: float = setting(math.nan, "NaN: the adaptive tau of Eq. (19); a value in (0, 1] fixes it "
+                               "(Table 6: 1e-15 and 1)", low=0.0, high=1.0, low_open=True, allow_nan=True)
+    inference_period_steps: int = setting(10, "The network runs once every this many samples (the block "
+                                          "length the model was trained with)", low=1)
+    initial_mass: float = setting(math.nan, "x_0 of Algorithm 1 [kg]; NaN: the mean mass of the model's "
+                                  "training set", low=0.0, low_open=True, allow_nan=True)
+    initial_mass_rel_std: float = setting(1.0, "Prior std of 1/m relative to 1/m_0", low=0.0, low_open=True)
+    velocity_noise_std: float = setting(0.05, "sqrt(R_v) of the speed observation [m/s]", low=0.0, low_open=True)
+    accel_noise_density: float = setting(0.05, "Process noise of v [m/s^2 sqrt(s)]: slope error, wind, tyre "
+                                         "slip", low=0.0, low_open=True)
+    mass_walk_rel: float = setting(2e-4, "Random walk of 1/m relative to 1/m [per sqrt(s)]", low=0.0)
+    network_rel_std: float = setting(math.nan, "sqrt(R_nn) relative to 1/m_nn; NaN: the model's validation "
+                                     "relative RMSE", low=0.0, low_open=True, allow_nan=True)
+    network_std_scale: float = setting(3.0, "R_nn inflation for correlated network outputs (~sqrt(w) for "
+                                       "w blocks per window)", low=0.0, low_open=True)
+    network_gate_sigma: float = setting(4.0, "A network output beyond this many sigma of its innovation is "
+                                        "not used (0: off, Algorithm 1)", low=0.0)
+    accel_from_speed: bool = setting(True, "The network's a_x feature is the slope of the last speeds (as "
+                                     "in training); False: the ax argument")
+    accel_fit_samples: int = setting(20, "Speeds in the least-squares a_x feature (20 = 0.2 s at 100 Hz)",
+                                     low=1)
+    min_speed: float = setting(1.0, "Below this speed the filter only tracks v [m/s]", low=0.0)
+    max_step_s: float = setting(0.5, "A larger time step restarts v from the measurement [s]",
+                                low=0.0, low_open=True)
+    max_abs_slope: float = setting(0.35, "Samples on a steeper grade are absurd [rad]", low=0.0, low_open=True)
+    max_abs_accel: float = setting(15.0, "An |a_x| above this is absurd [m/s^2]", low=0.0, low_open=True)
+    max_speed: float = setting(100.0, "A speed above this is absurd [m/s]", low=0.0, low_open=True)
+    max_abs_force: float = setting(1.0e6, "A drive force above this is absurd [N]", low=0.0, low_open=True)
     # --- convergence flag over the last `convergence_window` estimates
-    convergence_window: int = 200         # mass updates the convergence flag looks back over
-    convergence_max_cv: float = 0.01      # c_v (Eq. 40) of those updates below this: converged
-    convergence_max_rel_std: float = 0.05   # sqrt(variance) / mass
-    min_mass: float = 300.0             # published mass is clipped to [min_mass, max_mass] [kg]
-    max_mass: float = 100000.0          # [kg]
+    convergence_window: int = setting(200, "Mass updates the convergence flag looks back over", low=1)
+    convergence_max_cv: float = setting(0.01, "c_v (Eq. 40) of those updates below this: converged",
+                                        low=0.0, low_open=True)
+    convergence_max_rel_std: float = setting(0.05, "Converged only with sqrt(variance) / mass below this",
+                                             low=0.0, low_open=True)
+    min_mass: float = setting(300.0, "The published mass is clipped to [min_mass, max_mass] [kg]",
+                              low=0.0, low_open=True)
+    max_mass: float = setting(100000.0, "Upper clip of the published mass [kg]", low=0.0, low_open=True)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        def num(name: str) -> float:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"{name} must be a number, got {value!r}")
-            return float(value)
-
-        if not isinstance(self.model_path, str):
-            raise ValueError(f"model_path must be a string, got {self.model_path!r}")
-        if not isinstance(self.use_network, bool):
-            raise ValueError(f"use_network must be a bool, got {self.use_network!r}")
-        tau = num("fixed_tau")
-        if not math.isnan(tau) and not 0.0 < tau <= 1.0:
-            raise ValueError(f"fixed_tau must be NaN (adaptive) or in (0, 1], got {tau!r}")
-        if not isinstance(self.accel_from_speed, bool):
-            raise ValueError(f"accel_from_speed must be a bool, got {self.accel_from_speed!r}")
-        for name in ("inference_period_steps", "convergence_window", "accel_fit_samples"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        m0 = num("initial_mass")
-        if not math.isnan(m0) and not (math.isfinite(m0) and m0 > 0.0):
-            raise ValueError(f"initial_mass must be NaN or finite and > 0, got {m0!r}")
-        for name in ("initial_mass_rel_std", "velocity_noise_std", "accel_noise_density",
-                     "network_std_scale", "max_step_s", "max_abs_slope", "max_abs_accel",
-                     "max_speed", "max_abs_force", "convergence_max_cv",
-                     "convergence_max_rel_std", "min_mass", "max_mass"):
-            value = num(name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} must be finite and > 0, got {value!r}")
-        for name in ("mass_walk_rel", "min_speed", "network_gate_sigma"):
-            value = num(name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
-        rel = num("network_rel_std")
-        if not math.isnan(rel) and not (math.isfinite(rel) and rel > 0.0):
-            raise ValueError(f"network_rel_std must be NaN or finite and > 0, got {rel!r}")
+        check_settings(self)
         if self.min_mass >= self.max_mass:
             raise ValueError("min_mass must be below max_mass")
 
@@ -332,6 +312,11 @@ class TaAekfMassEstimator:
     """
 
     REJECT_REASONS = REJECT_REASONS
+    #: Algorithm 1 steps at every sample (0.01 s); the core averages its network features over
+    #: blocks itself, and gaps restart its speed state.
+    steps_on_windows = False
+    window_brake = "max"    # no windows: each sample carries its own brake torque
+    needs_heading = False
 
     def __init__(self, params: VehicleParams, config: TaAekfConfig | None = None,
                  model: MassModel | None = None) -> None:
@@ -434,6 +419,10 @@ class TaAekfMassEstimator:
         return (float(arr.std()) / mean < self.config.convergence_max_cv
                 and math.sqrt(self.variance) / self.mass < self.config.convergence_max_rel_std)
 
+    def status(self) -> dict[str, str]:
+        return {"confidence level tau (Eq. 19)": f"{self.last_tau:.3g}",
+                "network mass [kg]": f"{self.last_network_mass:.1f}"}
+
     # ------------------------------------------------------------------ update
     def _reject(self, reason: str) -> bool:
         self.rejected[reason] += 1
@@ -461,12 +450,12 @@ class TaAekfMassEstimator:
         :meth:`~vehicle_estimation.estimators.mass.mass_rls.LongitudinalMassEstimator.step` and not used.
         """
         cfg = self.config
-        if not all(_finite(v) for v in (t, vx, slope)):
+        if not all(finite_number(v) for v in (t, vx, slope)):
             return self._reject("nan")
         t, vx, slope = float(t), float(vx), float(slope)
         if not t > self._t_last:
             return self._reject("time")
-        ax_f = float(ax) if _finite(ax) and not cfg.accel_from_speed else math.nan
+        ax_f = float(ax) if finite_number(ax) and not cfg.accel_from_speed else math.nan
         if abs(vx) > cfg.max_speed or abs(slope) > cfg.max_abs_slope \
                 or (math.isfinite(ax_f) and abs(ax_f) > cfg.max_abs_accel):
             return self._reject("absurd")

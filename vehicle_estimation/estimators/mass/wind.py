@@ -45,6 +45,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from vehicle_estimation.contract.settings import check_settings, setting
+from vehicle_estimation.estimators.common.guard import all_finite
+
 REJECT_REASONS = ("nan", "time", "speed", "innovation")
 
 
@@ -52,39 +55,26 @@ REJECT_REASONS = ("nan", "time", "speed", "innovation")
 class WindEstimatorConfig:
     """Tuning of :class:`WindEstimator` (SI)."""
 
-    force_std: float = 150.0          # sigma of z in (*) per 0.25 s sample: torque-map and grade errors [N]
-    random_walk: float = 0.02         # wind random walk [m/s per sqrt(s)] (1.2 m/s per hour)
-    mass_random_walk: float = 5.0     # nuisance-mass random walk [kg per sqrt(s)] (follows load changes)
-    initial_wind_std: float = 6.0     # prior sigma of each wind component [m/s]
-    initial_mass_std: float = 600.0   # prior sigma of the nuisance mass [kg]
-    min_speed: float = 8.0            # no wind update below this speed [m/s]
-    gate: float = 5.0                 # innovation test in standard deviations
-    max_abs_wind: float = 25.0        # the published wind is clipped to this magnitude [m/s]
+    force_std: float = setting(150.0, "Sigma of z in (*) per 0.25 s sample: torque-map and grade errors [N]",
+                               low=0.0, low_open=True)
+    random_walk: float = setting(0.02, "Wind random walk [m/s per sqrt(s)] (1.2 m/s per hour)", low=0.0)
+    mass_random_walk: float = setting(5.0, "Nuisance-mass random walk [kg per sqrt(s)] (follows load changes)",
+                                      low=0.0)
+    initial_wind_std: float = setting(6.0, "Prior sigma of each wind component [m/s]", low=0.0, low_open=True)
+    initial_mass_std: float = setting(600.0, "Prior sigma of the nuisance mass [kg]", low=0.0, low_open=True)
+    min_speed: float = setting(8.0, "No wind update below this speed [m/s]", low=0.0)
+    gate: float = setting(5.0, "Innovation test in standard deviations", low=0.0, low_open=True)
+    max_abs_wind: float = setting(25.0, "The published wind is clipped to this magnitude [m/s]",
+                                  low=0.0, low_open=True)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"{f.name} must be a finite number, got {value!r}")
-        for name in ("force_std", "initial_wind_std", "initial_mass_std", "gate", "max_abs_wind"):
-            if getattr(self, name) <= 0.0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("random_walk", "mass_random_walk", "min_speed"):
-            if getattr(self, name) < 0.0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        check_settings(self)
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "WindEstimatorConfig":
         from vehicle_estimation.contract.vehicle import dataclass_from_mapping
         return dataclass_from_mapping(cls, values, "unknown wind estimator parameter {key!r}")
-
-
-def _finite(*values: float) -> bool:
-    try:
-        return all(math.isfinite(float(v)) for v in values)
-    except (TypeError, ValueError):
-        return False
 
 
 class WindEstimator:
@@ -94,7 +84,7 @@ class WindEstimator:
                  config: WindEstimatorConfig | None = None) -> None:
         self.config = config if config is not None else WindEstimatorConfig()
         self.config.validate()
-        if not (_finite(air_density, drag_area, initial_mass) and air_density > 0 and drag_area > 0
+        if not (all_finite(air_density, drag_area, initial_mass) and air_density > 0 and drag_area > 0
                 and initial_mass > 0):
             raise ValueError("air_density, drag_area and initial_mass must be finite and > 0")
         self.k_drag = 0.5 * float(air_density) * float(drag_area)
@@ -140,7 +130,7 @@ class WindEstimator:
 
     def along(self, heading: float) -> float:
         """Wind component along the heading w_a [m/s] (+: tailwind); 0 for a non-finite heading."""
-        if not _finite(heading):
+        if not all_finite(heading):
             return 0.0
         e, n = self.wind_enu
         return e * math.cos(heading) + n * math.sin(heading)
@@ -154,7 +144,7 @@ class WindEstimator:
     def update(self, t: float, v: float, heading: float, phi: float, net_force: float) -> bool:
         """One sample of (*): ``net_force`` = F_p - (I_w/r^2 + I_e G^2) a [N]. True when used."""
         cfg = self.config
-        if not _finite(t, v, heading, phi, net_force):
+        if not all_finite(t, v, heading, phi, net_force):
             self.rejected["nan"] += 1
             return False
         t, v, heading, phi, z = float(t), float(v), float(heading), float(phi), float(net_force)

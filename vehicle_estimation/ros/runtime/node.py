@@ -14,7 +14,6 @@ and histories and says so in the log and in ``/diagnostics``.
 from __future__ import annotations
 
 import math
-from collections import Counter, deque
 from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -171,25 +170,9 @@ class EstimatorNode(ParameterDeclarations, Node):
 
     # ------------------------------------------------------------------ bookkeeping
     @property
-    def rejected(self) -> Counter[str]:
-        return self.health.rejected
-
-    @property
-    def events(self) -> deque[str]:
-        return self.health.events
-
-    @property
-    def resets(self) -> int:
-        return self.health.resets
-
-    @property
     def missing(self) -> set[str]:
         """Inputs this node runs without (a fallback is active); ``/diagnostics`` names them."""
         return self.health.missing
-
-    @property
-    def max_queue(self) -> int:
-        return self.inputs.max_len
 
     def reject(self, reason: str) -> None:
         self.health.rejected[reason] += 1

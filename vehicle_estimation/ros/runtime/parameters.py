@@ -122,8 +122,11 @@ class ParameterDeclarations:
             elif isinstance(value, int):
                 values[field.name] = self.declare_int(name, value, doc, bounds=bounds)
             elif isinstance(value, float):
-                values[field.name] = self.declare_float(name, value, doc, allow_nan=bool(meta.get("allow_nan")),
-                                                        bounds=bounds)
+                allow_nan = bool(meta.get("allow_nan"))
+                if allow_nan and bounds is not None:
+                    # rclpy's range check refuses NaN ("automatic"): validate() checks the range
+                    doc, bounds = f"{doc}; else in {bounds}", None
+                values[field.name] = self.declare_float(name, value, doc, allow_nan=allow_nan, bounds=bounds)
             elif isinstance(value, str):
                 values[field.name] = self.declare_str(name, value, doc, meta.get("choices"))
             elif isinstance(value, (tuple, list)) and all(

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-#: Tolerance of comparisons between stamps in float seconds: near 1.7e9 s (any ROS epoch stamp)
-#: a float64 resolves only 2.4e-7 s, so a 10 ms period can come out as 9.99976 ms.
-STAMP_TOLERANCE_S = 1e-6
+from vehicle_estimation.estimators.common.guard import STAMP_TOLERANCE_S
+
+__all__ = ["STAMP_TOLERANCE_S", "stamp_ns", "stamp_to_sec", "sec_to_stamp"]
 
 
 def stamp_ns(stamp: Any) -> int:
