@@ -6,7 +6,7 @@ import dataclasses
 import math
 import sys
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
 from vehicle_estimation.sim.profiles import SpeedProfile
@@ -107,69 +107,43 @@ class Scenario:
     physics_rate: float = 500.0         # fixed-step integration rate [Hz]
 
 
+def _scenario(name: str, duration_s: float, speed_profile: SpeedProfile, road: RoadSpec, seed: int,
+              vehicle: str = "sedan_d_class", **fields: Any) -> Scenario:
+    """A named scenario of a shipped vehicle (the sedan of paper 004 unless said otherwise)."""
+    return Scenario(name=name, vehicle=load_vehicle(vehicle), duration_s=duration_s,
+                    speed_profile=speed_profile, road=road, seed=seed, **fields)
+
+
 def default_scenario(**overrides) -> Scenario:
     """Sedan (paper 004), 620 s: 10 s standstill, then urban/country/highway/country/urban
     on a hilly (|grade| <= 6 %), curvy road, ending at standstill."""
-    scn = Scenario(
-        name="default",
-        vehicle=load_vehicle("sedan_d_class"),
-        duration_s=620.0,
-        speed_profile=SpeedProfile(kind="route"),
-        road=RoadSpec(kind="random", grade_max=0.06),
-        seed=1,
-    )
+    scn = _scenario("default", 620.0, SpeedProfile(kind="route"), RoadSpec(kind="random", grade_max=0.06), seed=1)
     return dataclasses.replace(scn, **overrides)
 
 
 def _short() -> Scenario:
-    return Scenario(
-        name="short",
-        vehicle=load_vehicle("sedan_d_class"),
-        duration_s=60.0,
-        speed_profile=SpeedProfile(kind="points", points=((0, 0), (10, 16.7), (30, 16.7), (36, 12.0),
-                                                         (40, 12.0), (47, 0.0), (50, 0.0))),
-        road=RoadSpec(kind="random", grade_max=0.05, hill_wavelengths=(600.0, 300.0)),
-        seed=2,
-    )
+    points = ((0, 0), (10, 16.7), (30, 16.7), (36, 12.0), (40, 12.0), (47, 0.0), (50, 0.0))
+    return _scenario("short", 60.0, SpeedProfile(kind="points", points=points),
+                     RoadSpec(kind="random", grade_max=0.05, hill_wavelengths=(600.0, 300.0)), seed=2)
 
 
 def _paper004_loop() -> Scenario:
-    return Scenario(
-        name="paper004_loop",
-        vehicle=load_vehicle("sedan_d_class"),
-        duration_s=320.0,
-        speed_profile=SpeedProfile(kind="distance"),
-        road=RoadSpec(kind="loop004", grade_max=0.05),
-        seed=4,
-        initial_speed=80.0 / 3.6,
-        standstill_s=0.0,
-        # Eq. 34 scales the paper's R = diag[4e-2, 4e-2, 6e-5] (Sec. 7.1): the base noise of
-        # the measured ax, ay (0.2 m/s^2) and yaw rate (0.0077 rad/s) is the paper's.
-        sensors=SensorConfig(eq34_noise=True, accel_noise=0.2, gyro_noise=math.sqrt(6e-5)),
-    )
+    # Eq. 34 scales the paper's R = diag[4e-2, 4e-2, 6e-5] (Sec. 7.1): the base noise of the
+    # measured ax, ay (0.2 m/s^2) and yaw rate (0.0077 rad/s) is the paper's.
+    return _scenario("paper004_loop", 320.0, SpeedProfile(kind="distance"), RoadSpec(kind="loop004", grade_max=0.05),
+                     seed=4, initial_speed=80.0 / 3.6, standstill_s=0.0,
+                     sensors=SensorConfig(eq34_noise=True, accel_noise=0.2, gyro_noise=math.sqrt(6e-5)))
 
 
 def _truck_hwfet() -> Scenario:
-    return Scenario(
-        name="truck_hwfet",
-        vehicle=load_vehicle("heavy_truck"),
-        duration_s=790.0,
-        speed_profile=SpeedProfile(kind="cycle", cycle="hwfet"),
-        road=RoadSpec(kind="random", grade_max=0.03, lat_acc=1.5),
-        seed=5,
-    )
+    return _scenario("truck_hwfet", 790.0, SpeedProfile(kind="cycle", cycle="hwfet"),
+                     RoadSpec(kind="random", grade_max=0.03, lat_acc=1.5), seed=5, vehicle="heavy_truck")
 
 
 def _cycle(cycle: str, duration: float, vehicle: str = "sedan_d_class", seed: int = 6) -> Callable[[], Scenario]:
     def make() -> Scenario:
-        return Scenario(
-            name=f"{vehicle.split('_')[0]}_{cycle}",
-            vehicle=load_vehicle(vehicle),
-            duration_s=duration,
-            speed_profile=SpeedProfile(kind="cycle", cycle=cycle),
-            road=RoadSpec(kind="random", grade_max=0.05),
-            seed=seed,
-        )
+        return _scenario(f"{vehicle.split('_')[0]}_{cycle}", duration, SpeedProfile(kind="cycle", cycle=cycle),
+                         RoadSpec(kind="random", grade_max=0.05), seed=seed, vehicle=vehicle)
     return make
 
 
@@ -184,31 +158,16 @@ def paper002_sensors(segment_s: float, burst_rate: float) -> SensorConfig:
 
 def _paper002_dlc() -> Scenario:
     """ISO 3888-2 double lane changes at 80 km/h (one every 200 m, 30 s), flat road."""
-    return Scenario(
-        name="paper002_dlc",
-        vehicle=load_vehicle("sedan_d_class"),
-        duration_s=30.0,
-        speed_profile=SpeedProfile(kind="constant", speed_mps=80.0 / 3.6),
-        road=RoadSpec(kind="dlc3888", grade_max=0.0, dlc_lead_in=80.0, dlc_repeat_m=200.0),
-        seed=21,
-        initial_speed=80.0 / 3.6,
-        standstill_s=0.0,
-        sensors=paper002_sensors(segment_s=5.0, burst_rate=0.2),
-    )
+    return _scenario("paper002_dlc", 30.0, SpeedProfile(kind="constant", speed_mps=80.0 / 3.6),
+                     RoadSpec(kind="dlc3888", grade_max=0.0, dlc_lead_in=80.0, dlc_repeat_m=200.0), seed=21,
+                     initial_speed=80.0 / 3.6, standstill_s=0.0, sensors=paper002_sensors(segment_s=5.0, burst_rate=0.2))
 
 
 def _paper002_mixed() -> Scenario:
     """300 s urban/country/highway drive on a curvy, hilly road with the paper-002 outliers."""
-    return Scenario(
-        name="paper002_mixed",
-        vehicle=load_vehicle("sedan_d_class"),
-        duration_s=300.0,
-        speed_profile=SpeedProfile(kind="route", route_mix=("urban", "country", "highway")),
-        road=RoadSpec(kind="random", grade_max=0.05, lat_acc=3.0),
-        seed=22,
-        standstill_s=5.0,
-        sensors=paper002_sensors(segment_s=40.0, burst_rate=0.05),
-    )
+    return _scenario("paper002_mixed", 300.0, SpeedProfile(kind="route", route_mix=("urban", "country", "highway")),
+                     RoadSpec(kind="random", grade_max=0.05, lat_acc=3.0), seed=22, standstill_s=5.0,
+                     sensors=paper002_sensors(segment_s=40.0, burst_rate=0.05))
 
 
 SCENARIOS: dict[str, Callable[[], Scenario]] = {
