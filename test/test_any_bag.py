@@ -195,7 +195,7 @@ def test_remap_option_and_node_argv():
 
 
 def test_handshake_clock_is_never_negative():
-    from vehicle_estimation.launcher.replay import handshake_ns
+    from vehicle_estimation.launcher.replay_driver import handshake_ns
     assert handshake_ns(0) == 0
     assert handshake_ns(400_000_000) == 0
     assert handshake_ns(1_700_000_000 * 10**9) == 1_699_999_999 * 10**9

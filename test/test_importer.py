@@ -14,7 +14,8 @@ pytest.importorskip("rosbags")
 from vehicle_estimation.contract import topics as T  # noqa: E402
 from vehicle_estimation.paths import params_file, shared_data_dir  # noqa: E402
 from vehicle_estimation.io import importer  # noqa: E402
-from vehicle_estimation.io.importer import MappingError, convert, import_logs, load_signals  # noqa: E402
+from vehicle_estimation.io.import_map import MappingError, convert  # noqa: E402
+from vehicle_estimation.io.importer import import_logs, load_signals  # noqa: E402
 from vehicle_estimation.contract.vehicle import load_vehicle_params  # noqa: E402
 
 STANFORD_DIR = shared_data_dir("stanford_sideslip_2014")

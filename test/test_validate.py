@@ -85,3 +85,23 @@ def test_validate_command_end_to_end(tmp_path):
     assert "| sim_hills (ours) | slope |" in text and "converged NEES" in text
     assert (out / "commonroad_dlc.png").stat().st_size > 10_000
     assert (out / "sim_hills.png").stat().st_size > 10_000
+    # a second run into the same folder stops with a clear message, not a traceback
+    again = subprocess.run([sys.executable, "-m", "vehicle_estimation", "validate", "--quick", "--cases",
+                            "sim", "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert again.returncode == 2 and "Traceback" not in again.stderr, again.stderr
+    assert "exists" in again.stderr and "choose another --out" in again.stderr
+
+
+@pytest.mark.parametrize(("cases", "used"), [("commonroad", "bags"), ("fastsim", "runs"), ("sim", "runs"),
+                                             ("commonroad,fastsim,sim", "bags")])
+def test_validate_into_a_used_out_stops_with_a_message(tmp_path, used, cases):
+    """Whatever the case kind, an --out that holds an earlier run's bags/ or runs/ is refused
+    before anything is generated: exit 2, one line that says what to do, no traceback."""
+    out = tmp_path / "validate"
+    (out / used).mkdir(parents=True)
+    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "validate", "--quick", "--cases", cases,
+                           "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert f"{out / used} exists" in proc.stderr and "choose another --out" in proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == [used]     # nothing generated

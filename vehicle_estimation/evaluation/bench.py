@@ -365,7 +365,7 @@ def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
 
     from vehicle_estimation.contract import topics
     from vehicle_estimation.launcher.processes import NodeGroup
-    from vehicle_estimation.launcher.replay import msg_class
+    from vehicle_estimation.launcher.replay_driver import msg_class
     from vehicle_estimation.ros.runtime.spin import make_executor
 
     bag = _drive_bag(max(seconds / 60.0, 1.0) if seconds > 60 else 1.0, workdir)

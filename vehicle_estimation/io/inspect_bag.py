@@ -32,19 +32,7 @@ from vehicle_estimation.io.bag_survey import CONTRACT_JOINTS, InspectError, read
 from vehicle_estimation.launcher.node_plan import NODES, layered_params, plan_nodes
 from vehicle_estimation.evaluation.report import json_safe
 
-__all__ = ["InspectError", "format_summary", "parse_remaps", "summarize"]
-
-
-def parse_remaps(items: list[str] | None) -> dict[str, str]:
-    """``["FROM:=TO", ...]`` -> ``{FROM: TO}`` as written (see :func:`topics.bag_to_contract`)."""
-    out = {}
-    for item in items or []:
-        try:
-            src, dst = topics.parse_remap(item)
-        except ValueError as exc:
-            raise InspectError(f"--remap: {exc}") from exc
-        out[src] = dst
-    return out
+__all__ = ["InspectError", "format_summary", "summarize"]
 
 
 # ------------------------------------------------------------------------------ public API
@@ -181,22 +169,17 @@ def format_summary(summary: dict) -> str:
 
 # ------------------------------------------------------------------------------ command
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from vehicle_estimation.launcher.options import add_params_options, add_remap_option
     parser.add_argument("bag", help="rosbag2 directory (MCAP or sqlite3) or ROS 1 .bag")
-    parser.add_argument("--vehicle", default="sedan_d_class",
-                        help="vehicle params file or name in params/ (default: sedan_d_class)")
-    parser.add_argument("--params", action="append", default=None,
-                        help="node params file or name in params/ (default: estimation); repeat to "
-                             "layer files, a later file overriding an earlier one")
-    parser.add_argument("--remap", action="append", default=None, metavar="FROM:=TO",
-                        help="read a bag topic as a contract topic, CONTRACT:=BAG_TOPIC as for replay (repeatable)")
+    add_params_options(parser)
+    add_remap_option(parser, "read a bag topic as a contract topic, CONTRACT:=BAG_TOPIC as for replay")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
 def main(args: argparse.Namespace) -> int:
-    from vehicle_estimation.paths import params_file
+    from vehicle_estimation.launcher.options import params_files
     try:
-        files = [params_file(args.vehicle)] + [params_file(n) for n in (args.params or ["estimation"])]
-        summary = summarize(Path(args.bag), files, parse_remaps(args.remap))
+        summary = summarize(Path(args.bag), params_files(args), dict(args.remap))
     except (InspectError, FileNotFoundError) as exc:
         print(f"inspect: {exc}", file=sys.stderr)
         return 2

@@ -17,11 +17,14 @@ neither inputs nor ground truth are ignored. Stamps may start at 0 s. Time advan
 So no message is lost however slow a node is, the replay runs as fast as the slowest node
 allows, and the result does not depend on scheduling (see ``ros.runtime``). Ground-truth
 topics of the input bag are copied to the output bag (as Jazzy CDR).
+
+The player/recorder node and the per-tick protocol are :mod:`.replay_driver`; this module
+plays a bag through them and is the command ``vehicle-estimation replay``.
 """
 
 from __future__ import annotations
 
-import importlib
+import argparse
 import math
 import os
 import shutil
@@ -31,54 +34,27 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosgraph_msgs.msg import Clock
+from tqdm import tqdm
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.io.msgconvert import jazzy_typestore, ros1_to_cdr
+from vehicle_estimation.launcher.replay_driver import (
+    ReplayDriver,
+    ReplayError,
+    check_clock_owner,
+    handshake,
+    say,
+    tick,
+)
 from vehicle_estimation.ros import PIPELINE
-from vehicle_estimation.ros.runtime.qos import replay_qos
 from vehicle_estimation.ros.runtime.spin import make_executor
-from vehicle_estimation.ros.runtime.sync import (
-    ACK_TOPIC,
-    MATCHED_PREFIX,
-    RX_PREFIX,
-    SOURCES_PREFIX,
-    SYNC_TOPIC,
-    TX_PREFIX,
-)
-
-#: Estimates recorded to the output bag (relative names, resolved in the node namespace).
-RECORDED_TOPICS = (
-    (topics.ODOMETRY, "nav_msgs/msg/Odometry"),
-    (topics.IMU_COMPENSATED, "sensor_msgs/msg/Imu"),
-    (topics.IMU_BIAS, "sensor_msgs/msg/Imu"),
-    (topics.FUSION_GRADE, "geometry_msgs/msg/Vector3Stamped"),
-    (topics.ROAD_SLOPE, "std_msgs/msg/Float64"),
-    (topics.ROAD_SLOPE_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
-    (topics.VEHICLE_STATE, "geometry_msgs/msg/TwistWithCovarianceStamped"),
-    (topics.SIDESLIP, "std_msgs/msg/Float64"),
-    (topics.SIDESLIP_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
-    (topics.MASS, "std_msgs/msg/Float64"),
-    (topics.MASS_STAMPED, "geometry_msgs/msg/Vector3Stamped"),
-)
-DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 
 DEFAULT_TICK_S = 0.1
-#: Nodes acknowledge by themselves whenever their counts change after a sync; a resend is
-#: only a safety net.
-RESEND_S = 0.25
-
-
-class ReplayError(RuntimeError):
-    pass
 
 
 def release_delays(tick_s: float) -> dict[str, dict[str, str]]:
@@ -94,12 +70,6 @@ def release_delays(tick_s: float) -> dict[str, dict[str, str]]:
             "sync.feedback_lag": repr((len(PIPELINE) + 1) * tick_s),
         }
     return overrides
-
-
-def msg_class(type_name: str) -> Any:
-    package, kind, name = type_name.split("/")
-    return getattr(importlib.import_module(f"{package}.{kind}"), name)
-
 
 
 def _topic_plan(connections, remap: dict[str, str], input_topics: set[str],
@@ -148,170 +118,6 @@ class ReplayStats:
         return all(self.processed.get(t, -1) == n for t, n in self.read.items())
 
 
-class ReplayDriver(Node):
-    """The player and recorder node living in the launcher process."""
-
-    def __init__(self, namespace: str, node_names: Iterable[str], writer: Writer | None,
-                 typestore: Any, diagnostics: bool = True) -> None:
-        super().__init__("replay_player", namespace=namespace)
-        self.expected_nodes = {self._fq(namespace, n) for n in node_names}
-        self.acks: dict[str, dict[str, Any]] = {}
-        self.tx: Counter[str] = Counter()
-        self.raw_publishers: dict[str, Any] = {}
-        self.writer = writer
-        self.typestore = typestore
-        self.recorded: Counter[str] = Counter()
-        self._rec_connections: dict[str, Any] = {}
-        self.now_ns = 0
-        self.clock_checked = 0.0       # wall time of the last look for a second /clock (0: the first tick looks)
-        self.dirty = False
-        # Count bookkeeping across a node respawn (see respawn_baseline): what each process
-        # will never see, and what dead processes had published.
-        self.rx_offsets: dict[str, Counter[str]] = {}
-        self.recorded_offsets: Counter[str] = Counter()
-        self.tx_dead: Counter[str] = Counter()
-        self.ack_seq = 0
-        reliable = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-                              history=HistoryPolicy.KEEP_LAST, depth=10000)
-        self.reliable = reliable
-        self.clock_pub = self.create_publisher(Clock, "/clock", 10)
-        self.sync_pub = self.create_publisher(DiagnosticStatus, SYNC_TOPIC, replay_qos())
-        self.create_subscription(DiagnosticStatus, ACK_TOPIC, self._on_ack, replay_qos())
-        self.record_subs = {}
-        recorded = list(RECORDED_TOPICS) + ([("/diagnostics", DIAGNOSTICS_TYPE)] if diagnostics else [])
-        for topic, type_name in recorded:
-            holder: dict[str, str] = {}
-            sub = self.create_subscription(
-                msg_class(type_name), topic,
-                lambda data, h=holder: self._on_record(h["topic"], data), reliable, raw=True)
-            holder["topic"] = sub.topic_name
-            self.record_subs[sub.topic_name] = sub
-            if writer is not None:
-                self._rec_connections[sub.topic_name] = writer.add_connection(
-                    sub.topic_name, type_name, typestore=typestore)
-
-    @staticmethod
-    def _fq(namespace: str, name: str) -> str:
-        ns = namespace.rstrip("/")
-        return f"{ns}/{name}" if ns else f"/{name}"
-
-    def _on_record(self, topic: str, data: bytes) -> None:
-        self.recorded[topic] += 1
-        self.dirty = True
-        if self.writer is not None:
-            self.writer.write(self._rec_connections[topic], self.now_ns, data)
-
-    def raw_publisher(self, topic: str, type_name: str) -> Any:
-        if topic not in self.raw_publishers:
-            pub = self.create_publisher(msg_class(type_name), topic, self.reliable)
-            self.raw_publishers[topic] = pub
-        return self.raw_publishers[topic]
-
-    def _on_ack(self, msg: DiagnosticStatus) -> None:
-        self.ack_seq += 1
-        entry: dict[str, Any] = {"tick": msg.message, "rx": {}, "tx": {}, "matched": {}, "sources": {},
-                                 "seq": self.ack_seq}
-        for kv in msg.values:
-            for prefix, key in ((RX_PREFIX, "rx"), (TX_PREFIX, "tx"), (MATCHED_PREFIX, "matched"),
-                                (SOURCES_PREFIX, "sources")):
-                if kv.key.startswith(prefix):
-                    entry[key][kv.key[len(prefix):]] = int(kv.value)
-        self.acks[msg.name] = entry
-        self.dirty = True
-
-    # ---------------------------------------------------------------- protocol
-    def send_sync(self, tick_label: str, handshake: bool = False) -> None:
-        # level WARN asks the nodes to add their connection state (start-up handshake only)
-        msg = DiagnosticStatus(name="replay", message=tick_label,
-                               level=DiagnosticStatus.WARN if handshake else DiagnosticStatus.OK)
-        msg.values = [KeyValue(key=TX_PREFIX + pub.topic_name, value=str(self.tx[pub.topic_name]))
-                      for pub in self.raw_publishers.values()]
-        self.sync_pub.publish(msg)
-
-    def publish_raw(self, topic: str, data: bytes) -> None:
-        pub = self.raw_publishers[topic]
-        pub.publish(data)
-        self.tx[pub.topic_name] += 1
-
-    def totals(self) -> Counter[str]:
-        total = Counter(self.tx)
-        total.update(self.tx_dead)
-        for ack in self.acks.values():
-            total.update(ack["tx"])
-        return total
-
-    def forget_node(self, name: str) -> None:
-        """A node process died: keep what it published in the totals, drop its ack."""
-        ack = self.acks.pop(name, None)
-        if ack is not None:
-            self.tx_dead.update(ack["tx"])
-        self.rx_offsets.pop(name, None)
-
-    def counts_snapshot(self) -> tuple:
-        return (tuple(sorted((n, tuple(sorted(a["rx"].items())), tuple(sorted(a["tx"].items())))
-                             for n, a in self.acks.items())),
-                tuple(sorted(self.recorded.items())))
-
-    def rebaseline(self) -> None:
-        """After a respawn: what every subscriber has now is, from here on, complete.
-
-        Messages in flight to or from the dead process are lost with it; a new process
-        starts counting from zero. Offsets make every count match the totals again, so the
-        protocol carries on (lossless from here, not across the crash).
-        """
-        total = self.totals()
-        for name, ack in self.acks.items():
-            self.rx_offsets[name] = Counter({t: total.get(t, 0) - n for t, n in ack["rx"].items()})
-        for topic in self.record_subs:
-            self.recorded_offsets[topic] = total.get(topic, 0) - self.recorded[topic]
-
-    def quiescent(self, tick_label: str) -> bool:
-        if set(self.acks) < self.expected_nodes:
-            return False
-        if any(self.acks[n]["tick"] != tick_label for n in self.expected_nodes):
-            return False
-        total = self.totals()
-        for name in self.expected_nodes:
-            offsets = self.rx_offsets.get(name, Counter())
-            for topic, n in self.acks[name]["rx"].items():
-                if n + offsets[topic] != total.get(topic, 0):
-                    return False
-        return all(self.recorded[t] + self.recorded_offsets[t] == total.get(t, 0)
-                   for t in self.record_subs if t != "/diagnostics")
-
-    def acked_since(self, seq: int, tick_label: str) -> bool:
-        """Every node has acknowledged ``tick_label`` after ack number ``seq``."""
-        return set(self.acks) >= self.expected_nodes and all(
-            self.acks[n]["tick"] == tick_label and self.acks[n]["seq"] > seq for n in self.expected_nodes)
-
-    def connected(self) -> bool:
-        """Every publisher sees every subscriber of its topic, and vice versa."""
-        if set(self.acks) < self.expected_nodes:
-            return False
-        readers: Counter[str] = Counter()
-        for name in self.expected_nodes:
-            readers.update(self.acks[name]["rx"].keys())
-        for topic in self.record_subs:
-            readers[topic] += 1
-        for topic, pub in self.raw_publishers.items():
-            if pub.get_subscription_count() < readers[pub.topic_name]:
-                return False
-        for name in self.expected_nodes:
-            ack = self.acks[name]
-            for topic, matched in ack["matched"].items():
-                if matched < readers[topic]:
-                    return False
-            for topic, sources in ack["sources"].items():
-                publishers = int(any(p.topic_name == topic for p in self.raw_publishers.values())
-                                 or any(topic in self.acks[o]["matched"] for o in self.acks))
-                if sources < publishers:
-                    return False
-        for topic, sub in self.record_subs.items():
-            if topic != "/diagnostics" and sub.get_publisher_count() < 1:
-                return False
-        return True
-
-
 def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
            tick_s: float = DEFAULT_TICK_S, progress: bool = True, startup_timeout: float = 60.0,
            stall_timeout: float = 60.0,
@@ -355,6 +161,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     executor.add_node(driver)
     group.start()
     wall0 = time.monotonic()
+    bar = None
     try:
         with AnyReader([bag], default_typestore=typestore) as reader:
             play_ids, truth_ids = _topic_plan(reader.connections, remap, input_topics, truth_topics)
@@ -380,7 +187,8 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                 def to_cdr(conn_id: int, data: Any) -> bytes:
                     return ros1_to_cdr(reader.deserialize(data, types[conn_id]), types[conn_id], typestore)
             t_start, t_end = reader.start_time, reader.end_time
-            _handshake(driver, executor, group, t_start, startup_timeout)
+            handshake(driver, executor, group, t_start, startup_timeout)
+            bar = _progress_bar(progress, (t_end - t_start) * 1e-9)
             tick_ns = int(round(tick_s * 1e9))
             pauses = _pauses_from_environment()
             next_tick = t_start + tick_ns
@@ -391,29 +199,28 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                     continue
                 while timestamp >= next_tick:
                     pauses = _pause_if_asked(pauses, (next_tick - t_start) * 1e-9)
-                    _tick(driver, executor, group, next_tick, stall_timeout)
+                    tick(driver, executor, group, next_tick, stall_timeout)
                     stats.ticks += 1
                     next_tick += tick_ns
                     if tick_callback is not None:
                         tick_callback((next_tick - t_start) * 1e-9)
-                    if progress:
-                        _progress(next_tick - t_start, t_end - t_start, wall0)
+                    bar.update(min((next_tick - t_start) * 1e-9, bar.total) - bar.n)
                 topic = play_ids[conn.id]
                 driver.publish_raw(topic, to_cdr(conn.id, data))
                 stats.read[driver.raw_publishers[topic].topic_name] += 1
             # Flush: advance past the end by the deepest release delay plus two ticks.
             flush_end = t_end + int((len(PIPELINE) + 2) * tick_ns)
             while next_tick <= flush_end:
-                _tick(driver, executor, group, next_tick, stall_timeout)
+                tick(driver, executor, group, next_tick, stall_timeout)
                 stats.ticks += 1
                 next_tick += tick_ns
-            _check_clock_owner(driver)      # a replay shorter than discovery: one last look
-            if progress:
-                _progress(t_end - t_start, t_end - t_start, wall0)
-                print(file=sys.stderr)
+            check_clock_owner(driver)      # a replay shorter than discovery: one last look
+            bar.update(bar.total - bar.n)
             stats.bag_s = (t_end - t_start) * 1e-9
     finally:
         stats.wall_s = time.monotonic() - wall0
+        if bar is not None:
+            bar.close()
         group.stop()
         for topic in stats.read:
             counts = [ack["rx"][topic] + driver.rx_offsets.get(name, Counter())[topic]
@@ -430,125 +237,12 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     return stats
 
 
-#: A node that keeps dying is not respawned forever.
-MAX_RESPAWNS = 3
-
-
-def _spin_until(driver, executor, group, predicate, resend, timeout: float, what: str,
-                tick_label: str | None = None) -> None:
-    deadline = time.monotonic() + timeout
-    last_send = time.monotonic()
-    resend()
-    driver.dirty = True
-    while True:
-        if driver.dirty:
-            driver.dirty = False
-            if predicate():
-                return
-        executor.spin_once(timeout_sec=0.05)
-        now = time.monotonic()
-        if now - last_send > RESEND_S:
-            _check_clock_owner(driver)      # a stalled step is where a second clock shows
-            dead = group.check()
-            if dead:
-                names = ", ".join(f"{n.spec.name} (exit {n.process.returncode})" for n in dead)
-                # Exit 2 is a bad parameter: a respawn would only repeat it.
-                if tick_label is None or any(n.process.returncode == 2 or n.restarts >= MAX_RESPAWNS
-                                             for n in dead):
-                    raise ReplayError(f"node process exited during {what}: {names}")
-                _respawn(driver, executor, group, dead, tick_label, timeout)
-                deadline = time.monotonic() + timeout
-            resend()
-            last_send = now
-        if now > deadline:
-            raise ReplayError(f"timed out during {what}; acks: {driver.acks}")
-
-
-def _check_clock_owner(driver) -> None:
-    """A replay owns ``/clock`` in its domain: a second publisher (another replay, a simulator,
-    a bag player) makes every node hear two clocks, jump back and reset, and the replay stall."""
-    if driver.count_publishers("/clock") > 1:
-        domain = os.environ.get("ROS_DOMAIN_ID", "0")
-        raise ReplayError(
-            f"another node publishes /clock in ROS_DOMAIN_ID={domain} (another replay, a simulator or "
-            "a bag player?): a replay owns the clock of its domain; run it in a free one, e.g. "
-            "ROS_DOMAIN_ID=42 vehicle-estimation replay ...")
-
-
-def _respawn(driver, executor, group, dead, tick_label: str, timeout: float) -> None:
-    """Restart crashed nodes mid-replay and carry on from where every process stands.
-
-    Like the live launcher, the replay respawns a node that died (a crash, ``kill -9``); the
-    mass node resumes from its persisted state (``persist.path``). The new process is waited
-    for with handshake syncs at the current tick until it is connected and every count has
-    settled; then the player re-baselines its bookkeeping (:meth:`ReplayDriver.rebaseline`).
-    What was in flight to the dead process is lost with it: the replay stays lossless from the
-    respawn on, and says how many messages the crash cost.
-    """
-    for node in dead:
-        name = driver._fq(group.namespace, node.spec.name)
-        print(f"\nreplay: {node.spec.name} exited with {node.process.returncode}; respawning "
-              f"(restart {node.restarts + 1})", file=sys.stderr)
-        driver.forget_node(name)
-        node.restarts += 1
-        group.restart(node)
-    deadline = time.monotonic() + timeout
-    previous = None
-    while True:
-        seq = driver.ack_seq
-        driver.send_sync(tick_label, handshake=True)
-        last_send = time.monotonic()
-        while not (driver.acked_since(seq, tick_label) and driver.connected()):
-            executor.spin_once(timeout_sec=0.05)
-            if time.monotonic() > deadline:
-                raise ReplayError(f"respawned node never came back; acks: {driver.acks}")
-            if time.monotonic() - last_send > RESEND_S:
-                seq = driver.ack_seq
-                driver.send_sync(tick_label, handshake=True)
-                last_send = time.monotonic()
-        snapshot = driver.counts_snapshot()
-        if snapshot == previous:
-            break
-        previous = snapshot
-        end = time.monotonic() + 0.2
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.02)
-    driver.rebaseline()
-
-
-def handshake_ns(t_start_ns: int) -> int:
-    """Clock and sync label of the start-up handshake: 1 s before the bag, but never negative.
-
-    ROS time cannot be negative (rclpy raises on it in every node), and bags from simulators,
-    CSV exports and many loggers start at 0 s. The handshake only has to come before the first
-    tick (``t_start + tick``), which 0 does.
-    """
-    return max(t_start_ns - 10**9, 0)
-
-
-def _handshake(driver, executor, group, t_start_ns: int, timeout: float) -> None:
-    t_ns = handshake_ns(t_start_ns)
-    label = str(t_ns)
-    _spin_until(driver, executor, group, lambda: driver.connected() and driver.quiescent(label),
-                lambda: (driver.clock_pub.publish(_clock(t_ns)), driver.send_sync(label, handshake=True)),
-                timeout, "start-up (waiting for every node and connection)")
-
-
-#: Wall time between two looks for a second /clock while the replay runs [s]: discovery of a
-#: participant that starts later takes up to a few seconds, and a look costs a graph query.
-CLOCK_CHECK_PERIOD_S = 1.0
-
-
-def _tick(driver, executor, group, tick_ns: int, timeout: float) -> None:
-    now = time.monotonic()
-    if now - driver.clock_checked > CLOCK_CHECK_PERIOD_S:
-        driver.clock_checked = now
-        _check_clock_owner(driver)
-    driver.now_ns = tick_ns
-    driver.clock_pub.publish(_clock(tick_ns))
-    label = str(tick_ns)
-    _spin_until(driver, executor, group, lambda: driver.quiescent(label),
-                lambda: driver.send_sync(label), timeout, f"tick {label}", tick_label=label)
+def _progress_bar(enabled: bool, total_s: float) -> tqdm:
+    """Seconds of bag played. Drawn on a terminal only (``disable=None``): a log gets no frames."""
+    return tqdm(total=total_s, desc="replay", unit="s", file=sys.stderr, mininterval=0.5,
+                disable=None if enabled else True,
+                bar_format="{desc} {percentage:5.1f}%|{bar:30}| bag {n:.1f}/{total:.1f} s "
+                           "[{elapsed}<{remaining}, {rate_noinv_fmt}]")
 
 
 #: Fault injection for tests: ``SECONDS:FILE[,SECONDS:FILE...]``. Once the replay has played
@@ -558,7 +252,6 @@ PAUSE_ENV = "VEHICLE_ESTIMATION_REPLAY_PAUSE"
 
 
 def _pauses_from_environment() -> list[tuple[float, Path]]:
-    import os
     spec = os.environ.get(PAUSE_ENV, "").strip()
     pauses = []
     for item in filter(None, (part.strip() for part in spec.split(","))):
@@ -577,32 +270,10 @@ def _pause_if_asked(pauses: list[tuple[float, Path]], bag_s: float) -> list[tupl
     """
     while pauses and bag_s >= pauses[0][0]:
         seconds, path = pauses.pop(0)
-        print(f"\nreplay: paused at {seconds:.1f} s of bag until {path} exists", file=sys.stderr, flush=True)
+        say(f"replay: paused at {seconds:.1f} s of bag until {path} exists")
         while not path.exists():
             time.sleep(0.05)
     return pauses
-
-
-def _clock(ns: int) -> Clock:
-    msg = Clock()
-    msg.clock.sec = ns // 1_000_000_000
-    msg.clock.nanosec = ns % 1_000_000_000
-    return msg
-
-
-_last_progress = [0.0]
-
-
-def _progress(done_ns: int, total_ns: int, wall0: float) -> None:
-    now = time.monotonic()
-    if now - _last_progress[0] < 0.5 and done_ns < total_ns:
-        return
-    _last_progress[0] = now
-    frac = min(1.0, done_ns / total_ns) if total_ns > 0 else 1.0
-    bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
-    wall = max(now - wall0, 1e-9)
-    print(f"\r[{bar}] {100 * frac:5.1f}%  bag {done_ns * 1e-9:7.1f}/{total_ns * 1e-9:.1f} s  "
-          f"{done_ns * 1e-9 / wall:5.1f}x real time", end="", file=sys.stderr, flush=True)
 
 
 def print_stats(stats: ReplayStats, out=sys.stdout) -> None:
@@ -615,3 +286,40 @@ def print_stats(stats: ReplayStats, out=sys.stdout) -> None:
     if stats.respawns:
         print(f"{stats.respawns} node respawn(s) after a crash: what a dead process had queued "
               "but not processed is lost with it (counted as processed above)", file=out)
+
+
+# ------------------------------------------------------------------------------ command
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from vehicle_estimation.launcher.options import add_node_options, add_remap_option
+    p.add_argument("bag", help="rosbag2 directory (MCAP or sqlite3) or ROS 1 .bag file; stamps may start at 0 s")
+    p.add_argument("--record", required=True, help="output bag directory (MCAP)")
+    p.add_argument("--tick", type=float, default=DEFAULT_TICK_S, help="replay tick of bag time [s]")
+    p.add_argument("--log-dir", default=None, help="write each node's log here")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_remap_option(p, "play a bag topic as a contract topic, ROS-style CONTRACT:=BAG_TOPIC (e.g. "
+                        "imu/data:=/sensors/imu; the reverse order is taken too)")
+    add_node_options(p)
+
+
+def main(args: argparse.Namespace) -> int:
+    from vehicle_estimation.io.inspect_bag import InspectError, format_summary, summarize
+    from vehicle_estimation.launcher.options import node_group, params_files
+    # What `inspect` says of this bag with these params: the sources and fallbacks each node
+    # will use, and what will stay empty, before minutes of replay.
+    try:
+        print(format_summary(summarize(Path(args.bag), params_files(args), dict(args.remap))), file=sys.stderr)
+    except (InspectError, OSError, ValueError) as exc:
+        print(f"replay: cannot inspect {args.bag} ({exc}); replaying anyway", file=sys.stderr)
+    record = Path(args.record) if args.record else None
+    log_dir = Path(args.log_dir) if args.log_dir else None
+    if log_dir:
+        log_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        stats = replay(Path(args.bag), record, lambda ov: node_group(args, ov, log_dir),
+                       namespace=args.namespace, tick_s=args.tick, progress=not args.quiet,
+                       remap=dict(args.remap))
+    except ReplayError as exc:
+        print(f"replay failed: {exc}", file=sys.stderr)
+        return 1
+    print_stats(stats)
+    return 0 if stats.lossless else 1

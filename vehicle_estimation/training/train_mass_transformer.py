@@ -186,6 +186,5 @@ def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    sys.exit(main(parser.parse_args()))
+    from vehicle_estimation.cli import run_as_script
+    sys.exit(run_as_script(sys.modules[__name__]))

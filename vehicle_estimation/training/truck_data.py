@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig, drive_force_input
 from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, TAU_FEATURES, FeatureBlocks, eq15_features
@@ -229,7 +230,8 @@ def generate(block_steps: int = 10, repeats: int = 1, payloads: tuple[float, ...
                                   "drive_slope_index": [], "drive_repeat": []}
     seg_offset = 0
     total = len(payloads) * len(slopes) * repeats
-    t0 = time.monotonic()
+    # Drawn on a terminal only (disable=None): a log gets no frames.
+    bar = tqdm(total=total, desc="drives", unit="drive", disable=None if progress else True)
     d = 0
     for rep in range(repeats):
         for i, payload in enumerate(payloads):
@@ -250,11 +252,9 @@ def generate(block_steps: int = 10, repeats: int = 1, payloads: tuple[float, ...
                 meta["drive_slope_index"].append(j)
                 meta["drive_repeat"].append(rep)
                 d += 1
-                if progress:
-                    print(f"\r  drive {d}/{total}: {slope.name:<16} {mass:8.0f} kg  "
-                          f"{nn.shape[0]} blocks  {time.monotonic() - t0:5.1f} s", end="", flush=True)
-    if progress:
-        print()
+                bar.set_postfix_str(f"{slope.name} {mass:.0f} kg, {nn.shape[0]} blocks", refresh=False)
+                bar.update()
+    bar.close()
     out = {"nn": np.concatenate(nn_all), "tau": np.concatenate(tau_all),
            "segment": np.concatenate(seg_all), "drive": np.concatenate(drive_all),
            "block_steps": np.array(block_steps)}
@@ -297,6 +297,5 @@ def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    sys.exit(main(parser.parse_args()))
+    from vehicle_estimation.cli import run_as_script
+    sys.exit(run_as_script(sys.modules[__name__]))

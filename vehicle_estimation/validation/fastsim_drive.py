@@ -78,6 +78,7 @@ Needs ``pip install fastsim==3.1.0`` (in the ``test`` and ``validation`` extras)
 
 from __future__ import annotations
 
+import sys
 import types
 import warnings
 from collections.abc import Sequence
@@ -400,10 +401,7 @@ def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None) -> 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return rd.generator_main(argv, prog="python -m vehicle_estimation.validation.fastsim_drive",
-                             description="Bags of a hilly NREL FASTSim 3 drive (2012 Ford Fusion) in our topic contract",
-                             out_help="output folder (one bag per variant)", full_duration=FULL_DURATION, generate=generate,
-                             params_yaml=params_yaml)
+    return rd.generator_main(argv, sys.modules[__name__], out_help="output folder (one bag per variant)")
 
 
 if __name__ == "__main__":

@@ -144,20 +144,22 @@ def write_drive(result, path: Path, *, gnss: bool = True, wheels: bool = True) -
     return simbag.write_streams(streams, path)
 
 
-def generator_main(argv, *, prog: str, description: str, out_help: str, full_duration: float,
-                   generate, params_yaml) -> int:
-    """The command line both road-drive generators share: ``--out DIR [--duration S] [--seed N]
-    [--write-params FILE]``; prints each bag written."""
+def generator_main(argv, module, *, out_help: str) -> int:
+    """The command line both road-drive generators share: ``python -m <module> --out DIR
+    [--duration S] [--seed N] [--write-params FILE]``; prints each bag written. ``module`` has
+    ``generate(out, seed=, duration=)``, ``params_yaml()`` and ``FULL_DURATION``; its docstring's
+    first line is the description."""
     import argparse
 
-    ap = argparse.ArgumentParser(prog=prog, description=description)
+    ap = argparse.ArgumentParser(prog=f"python -m {module.__spec__.name}",
+                                 description=module.__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True, help=out_help)
-    ap.add_argument("--duration", type=float, default=None, help=f"drive length [s] (default {full_duration:g})")
+    ap.add_argument("--duration", type=float, default=None, help=f"drive length [s] (default {module.FULL_DURATION:g})")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
     args = ap.parse_args(argv)
     if args.write_params is not None:
-        args.write_params.write_text(params_yaml(), encoding="utf-8")
-    for path in generate(args.out, seed=args.seed, duration=args.duration):
+        args.write_params.write_text(module.params_yaml(), encoding="utf-8")
+    for path in module.generate(args.out, seed=args.seed, duration=args.duration):
         print(path)
     return 0

@@ -53,6 +53,7 @@ import numpy as np
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.evaluation.report import json_safe
+from vehicle_estimation.launcher.options import add_namespace_option, node_group_factory
 
 MAPPING = "stanford_sideslip_2014"
 VEHICLE = "stanford_2014"
@@ -233,10 +234,10 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     car carries several m/s^2 of it (issue "the bag a user brings").
 
     ``node_group(params_files, overrides, log_dir)`` builds the node processes (see
-    ``cli.cmd_stanford``); ``params_files`` are the layers after the vehicle file.
+    :func:`main`); ``params_files`` are the layers after the vehicle file.
     """
     from vehicle_estimation.paths import params_file, shared_data_dir
-    from vehicle_estimation.io import importer
+    from vehicle_estimation.io import import_map, importer
     from vehicle_estimation.launcher.replay import ReplayError, print_stats, replay
     from vehicle_estimation.contract.vehicle import load_vehicle_params
 
@@ -257,7 +258,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
             shutil.rmtree(out / sub)
     out.mkdir(parents=True, exist_ok=True)
     vehicle = load_vehicle_params(params_file(VEHICLE))
-    base_map, map_path = importer.load_mapping(MAPPING)
+    base_map, map_path = import_map.load_mapping(MAPPING)
     data_dir = data_dir or str(shared_data_dir(MAPPING))
 
     # ---- import (one bag per speed source) and the arrays the baseline needs
@@ -280,7 +281,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     if vibration_std > 0.0:
         ax, ay = _add_vibration(bags, t, ax, ay, vibration_std, vibration_seed, progress)
     r = sig["imu.angular_velocity.z"].values
-    delta = np.interp(t, sig[importer.STEERING_KEY].t, sig[importer.STEERING_KEY].values) / vehicle.steering_ratio
+    delta = np.interp(t, sig[import_map.STEERING_KEY].t, sig[import_map.STEERING_KEY].values) / vehicle.steering_ratio
     ref = {"vx": (sig["ground_truth.vehicle_state.vx"].t, sig["ground_truth.vehicle_state.vx"].values),
            "vy": (sig["ground_truth.vehicle_state.vy"].t, sig["ground_truth.vehicle_state.vy"].values),
            "yaw_rate": (sig["ground_truth.vehicle_state.yaw_rate"].t, sig["ground_truth.vehicle_state.yaw_rate"].values),
@@ -467,9 +468,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vibration-seed", type=int, default=0, help="seed of the vibration")
     p.add_argument("--warmup", type=float, default=DEFAULT_WARMUP_S, help="seconds skipped by the metrics")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_namespace_option(p)
 
 
-def main(args: argparse.Namespace, node_group: Callable[[list[Path], Any, Path], Any]) -> int:
+def main(args: argparse.Namespace) -> int:
+    from vehicle_estimation.paths import params_file
+    node_group = node_group_factory(args.namespace, [params_file(VEHICLE)])
     try:
         result = run(Path(args.out), node_group, data_dir=args.data_dir,
                      filters=[f for f in args.filters.split(",") if f],

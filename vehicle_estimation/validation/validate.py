@@ -46,6 +46,7 @@ from vehicle_estimation.contract import topics as T
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
+from vehicle_estimation.launcher.options import add_namespace_option, node_group_factory
 from vehicle_estimation.validation import baselines
 
 DEFAULT_OUT = Path("out") / "validate"
@@ -270,10 +271,18 @@ def _shipped_methods() -> dict[str, str]:
 
 def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases: Sequence[str] | None = None,
         quick: bool = False, progress: bool = True) -> dict:
-    """Make the cases, replay each, score it with its baseline; returns ``validation.json``'s content."""
+    """Make the cases, replay each, score it with its baseline; returns ``validation.json``'s content.
+
+    Raises :class:`FileExistsError` when ``out`` holds the bags or runs of an earlier run: the
+    drives are generated afresh (a new library version may change them) and never mixed with
+    an earlier run's, whatever the case kinds.
+    """
     from vehicle_estimation.launcher.replay import ReplayError, replay
 
     out = Path(out)
+    for used in (out / "bags", out / "runs"):
+        if used.exists():
+            raise FileExistsError(f"{used} exists")
     out.mkdir(parents=True, exist_ok=True)
     groups = list(cases or CASE_BUILDERS)
     unknown = [g for g in groups if g not in CASE_BUILDERS]
@@ -391,15 +400,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"comma-separated case groups (default: {','.join(CASE_BUILDERS)})")
     p.add_argument("--quick", action="store_true", help="one short drive per group (a smoke run)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    add_namespace_option(p)
 
 
-def main(args: argparse.Namespace, node_group) -> int:
+def main(args: argparse.Namespace) -> int:
     try:
-        result = run(args.out, node_group, cases=[c for c in args.cases.split(",") if c], quick=args.quick,
+        result = run(args.out, node_group_factory(args.namespace), cases=[c for c in args.cases.split(",") if c], quick=args.quick,
                      progress=not args.quiet)
     except FileExistsError as exc:
-        # The drives are generated afresh (a new library version may change them): never mixed
-        # with the bags of an earlier run.
         print(f"validate: {exc} (from an earlier run): remove {args.out} or choose another --out",
               file=sys.stderr)
         return 2

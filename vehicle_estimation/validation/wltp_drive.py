@@ -105,6 +105,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import types
 from collections.abc import Sequence
 from pathlib import Path
@@ -440,10 +441,7 @@ def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None) -> 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return rd.generator_main(argv, prog="python -m vehicle_estimation.validation.wltp_drive",
-                             description="OBD-II-only bags of a hilly drive of the JRC WLTP gear-shift tool in our topic contract",
-                             out_help="output folder (one bag per drive and variant)", full_duration=FULL_DURATION, generate=generate,
-                             params_yaml=params_yaml)
+    return rd.generator_main(argv, sys.modules[__name__], out_help="output folder (one bag per drive and variant)")
 
 
 if __name__ == "__main__":
