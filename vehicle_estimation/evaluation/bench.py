@@ -312,8 +312,9 @@ def rss_mib(pid: int) -> float:
 
 
 def _params_files() -> list[Path]:
+    from vehicle_estimation.launcher.options import DEFAULT_PARAMS, DEFAULT_VEHICLE
     from vehicle_estimation.paths import params_file
-    return [params_file("sedan_d_class"), params_file("estimation")]
+    return [params_file(DEFAULT_VEHICLE), params_file(DEFAULT_PARAMS)]
 
 
 def _drive_bag(minutes: float, workdir: Path) -> Path:
@@ -544,7 +545,5 @@ def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="vehicle-estimation bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(parser)
-    raise SystemExit(main(parser.parse_args()))
+    from vehicle_estimation.cli import run_as_script
+    raise SystemExit(run_as_script(sys.modules[__name__]))
