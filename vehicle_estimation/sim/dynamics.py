@@ -359,13 +359,7 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
         w_along = wE * cos(psi) + wN * sin(psi)
 
         # record control-rate signals (state at t_k)
-        sdelta[k] = delta
-        swe[k] = w_e
-        sTe[k] = Te
-        sload[k] = load
-        sthr[k] = throttle
-        sgear[k] = gear
-        sFd[k] = F_drive
+        sdelta[k], swe[k], sTe[k], sload[k], sthr[k], sgear[k], sFd[k] = delta, w_e, Te, load, throttle, gear, F_drive
         sTb[0][k], sTb[1][k], sTb[2][k], sTb[3][k] = Tb1, Tb2, Tb3, Tb4
         svref[k] = v_target if not coast else float("nan")
         ss[k] = s_path
@@ -497,22 +491,13 @@ def simulate_dynamics(vp: VehicleParams, road, v_ref: np.ndarray, duration_s: fl
             # record the state at the start of the step... (after update = end of step)
             # kinematics (semi-implicit: new velocities)
             cps, sps = cos(psi), sin(psi)
-            fvxd[kf] = vxd
-            fvyd[kf] = vyd
-            fax[kf] = ax_k
-            fay[kf] = ay_k
+            fvxd[kf], fvyd[kf], fax[kf], fay[kf] = vxd, vyd, ax_k, ay_k
             X += (vx * cps * cth - vy * sps) * dt
             Y += (vx * sps * cth + vy * cps) * dt
             Z += vx * sth * dt
             psi += r * dt
-            fvx[kf] = vx
-            fvy[kf] = vy
-            fr[kf] = r
-            fX[kf] = X
-            fY[kf] = Y
-            fZ[kf] = Z
-            fpsi[kf] = psi
-            fth[kf] = theta
+            fvx[kf], fvy[kf], fr[kf] = vx, vy, r
+            fX[kf], fY[kf], fZ[kf], fpsi[kf], fth[kf] = X, Y, Z, psi, theta
         sw[0][k], sw[1][k], sw[2][k], sw[3][k] = w1, w2, w3, w4
         sFz[0][k], sFz[1][k], sFz[2][k], sFz[3][k] = Fz1, Fz2, Fz3, Fz4
 

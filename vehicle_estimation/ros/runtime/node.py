@@ -84,21 +84,37 @@ class EstimatorNode(ParameterDeclarations, Node):
         pub.publish(msg)
         self.health.tx[pub.topic_name] += 1
 
-    def subscribe_primary(self, msg_type: Any, topic: str,
-                          handler: Callable[[float, Any], None],
-                          stamp_of: Callable[[Any], float] | None = None) -> Any:
-        """Subscribe a sensor input that is processed in stamp order (sensor-data QoS)."""
-        stamp_of = stamp_of or (lambda m: stamp_to_sec(m.header.stamp))
+    def _subscribe_counted(self, msg_type: Any, topic: str, qos: Any,
+                           deliver: Callable[[str, Any, Callable[[Any], Any]], None]) -> Any:
+        """A subscription that counts each message under its resolved topic name and hands it
+        to ``deliver(topic, message, read)``; ``read`` turns the message into what handlers
+        take (a view of its CDR bytes for the high-rate types, else the message itself), and
+        ``deliver`` calls it where it can handle a malformed message."""
         holder: dict[str, str] = {}
-        read = raw_reader(msg_type)
+        view = raw_reader(msg_type)
+        read: Callable[[Any], Any] = view if view is not None else (lambda msg: msg)
         rx = self.health.rx
 
         def on_message(msg: Any) -> None:
             name = holder["topic"]
             rx[name] += 1
+            deliver(name, msg, read)
+
+        sub = self.create_subscription(msg_type, topic, on_message, qos, raw=view is not None)
+        holder["topic"] = sub.topic_name
+        rx[sub.topic_name] += 0
+        self._subscriptions_by_topic[sub.topic_name] = sub
+        return sub
+
+    def subscribe_primary(self, msg_type: Any, topic: str,
+                          handler: Callable[[float, Any], None],
+                          stamp_of: Callable[[Any], float] | None = None) -> Any:
+        """Subscribe a sensor input that is processed in stamp order (sensor-data QoS)."""
+        stamp_of = stamp_of or (lambda m: stamp_to_sec(m.header.stamp))
+
+        def deliver(name: str, msg: Any, read: Callable[[Any], Any]) -> None:
             try:
-                if read is not None:
-                    msg = read(msg)
+                msg = read(msg)
                 t = stamp_of(msg)
             except Exception:  # malformed message: no usable stamp
                 self.reject(f"{name}:bad_stamp")
@@ -111,12 +127,7 @@ class EstimatorNode(ParameterDeclarations, Node):
             self.inputs.push(ns, name, handler, msg)
             self._release_available()
 
-        sub = self.create_subscription(msg_type, topic, on_message, sensor_qos(self.input_depth),
-                                       raw=read is not None)
-        holder["topic"] = sub.topic_name
-        rx[sub.topic_name] += 0
-        self._subscriptions_by_topic[sub.topic_name] = sub
-        return sub
+        return self._subscribe_counted(msg_type, topic, sensor_qos(self.input_depth), deliver)
 
     def subscribe_imu_bias(self, bias: FusionImuBias) -> Any:
         """Subscribe the fusion node's IMU bias estimate (see :class:`FusionImuBias`)."""
@@ -125,17 +136,12 @@ class EstimatorNode(ParameterDeclarations, Node):
     def subscribe_upstream(self, msg_type: Any, topic: str, history: UpstreamHistory,
                            convert: Callable[[Any], tuple[float, Any] | None]) -> Any:
         """Subscribe an estimate of another node into a stamp-indexed history (reliable QoS)."""
-        holder: dict[str, str] = {}
-        read = raw_reader(msg_type)
-        rx = self.health.rx
 
-        def on_message(msg: Any) -> None:
-            name = holder["topic"]
-            rx[name] += 1
+        def deliver(name: str, msg: Any, read: Callable[[Any], Any]) -> None:
             if self._sync is not None:
                 self._sync.schedule_reack()
             try:
-                item = convert(msg if read is None else read(msg))
+                item = convert(read(msg))
             except Exception:
                 item = None
             if item is None or not math.isfinite(item[0]):
@@ -143,12 +149,7 @@ class EstimatorNode(ParameterDeclarations, Node):
                 return
             history.add(*item)
 
-        sub = self.create_subscription(msg_type, topic, on_message, output_qos(self.output_depth),
-                                       raw=read is not None)
-        holder["topic"] = sub.topic_name
-        rx[sub.topic_name] += 0
-        self._subscriptions_by_topic[sub.topic_name] = sub
-        return sub
+        return self._subscribe_counted(msg_type, topic, output_qos(self.output_depth), deliver)
 
     def _release_available(self) -> None:
         if self._sync is None:
