@@ -237,7 +237,8 @@ def _non_empty_section(mapping: Mapping, section: str, entry: str) -> dict:
     return entries
 
 
-def finite_number(value: Any, where: str, default: float | None = None) -> float:
+def mapped_number(value: Any, where: str, default: float | None = None) -> float:
+    """A finite number of the mapping at ``where`` (``default`` when absent), else MappingError."""
     if value is None and default is not None:
         return default
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -346,8 +347,8 @@ def _validate_signal(spec: Any, where: str, kind: str, sources: Mapping, keys: s
         known = [u for k in kinds for u in UNITS[k]]
         label = "a wheel speed" if kind == "wheel" else kind_label(kind)
         raise MappingError(f"{where}.unit: unknown unit {unit!r} for {label} (known: {', '.join(known)})")
-    finite_number(spec.get("scale"), where + ".scale", 1.0)
-    finite_number(spec.get("offset"), where + ".offset", 0.0)
+    mapped_number(spec.get("scale"), where + ".scale", 1.0)
+    mapped_number(spec.get("offset"), where + ".offset", 0.0)
 
 
 def _validate_time(spec: Any, where: str, sources: Mapping, own: str | None = None) -> None:
@@ -361,4 +362,4 @@ def _validate_time(spec: Any, where: str, sources: Mapping, own: str | None = No
     unit = str(spec.get("unit", "s"))
     if unit not in UNITS["time"]:
         raise MappingError(f"{where}.unit: unknown unit {unit!r} for a time (known: {', '.join(UNITS['time'])})")
-    finite_number(spec.get("offset"), where + ".offset", 0.0)
+    mapped_number(spec.get("offset"), where + ".offset", 0.0)

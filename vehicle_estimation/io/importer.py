@@ -56,7 +56,7 @@ from vehicle_estimation.io.import_map import (
     YAW_RATE_KEY,
     MappingError,
     convert,
-    finite_number,
+    mapped_number,
     load_mapping,
     needs_vehicle,
     validate_mapping,
@@ -237,7 +237,7 @@ def load_signals(mapping: Mapping, *, base_dir: str | Path | None = None, vehicl
         src = spec.get("source", default_source if len(sources) != 1 else next(iter(sources)))
         raw = tables[src].column(spec.get("column"), where + ".column")
         t = convert(raw, str(spec.get("unit", "s")), "time", where + ".unit")
-        return t + finite_number(spec.get("offset"), where + ".offset", 0.0)
+        return t + mapped_number(spec.get("offset"), where + ".offset", 0.0)
 
     global_time = None
     if "time" in mapping:
@@ -268,8 +268,8 @@ def load_signals(mapping: Mapping, *, base_dir: str | Path | None = None, vehicl
         src = spec.get("source", next(iter(sources)))
         table = tables[src]
         raw = table.column(spec.get("column"), where + ".column")
-        raw = (raw * finite_number(spec.get("scale"), where + ".scale", 1.0)
-               + finite_number(spec.get("offset"), where + ".offset", 0.0))
+        raw = (raw * mapped_number(spec.get("scale"), where + ".scale", 1.0)
+               + mapped_number(spec.get("offset"), where + ".offset", 0.0))
         unit = str(spec["unit"])
         if kind == "wheel":
             if unit in UNITS["velocity"]:
