@@ -137,11 +137,9 @@ def bench_fusion(d: DriveArrays) -> list[StepTiming]:
 
 
 def bench_slope(d: DriveArrays) -> list[StepTiming]:
-    from vehicle_estimation.estimators.slope.slope import (
-        ClassicalSlopeObserver,
-        CubicPredictionSlopeObserver,
-        PitchGradeSlope,
-    )
+    from vehicle_estimation.estimators.slope.cubic_prediction import CubicPredictionSlopeObserver
+    from vehicle_estimation.estimators.slope.observers import ClassicalSlopeObserver
+    from vehicle_estimation.estimators.slope.pitch_grade import PitchGradeSlope
     t = d.imu_t
     vx = d.at_truth("vx", t)
     grade = d.at_truth("slope", t)
