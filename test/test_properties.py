@@ -37,7 +37,8 @@ from sensor_msgs.msg import Imu, JointState
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
 from vehicle_estimation.estimators.state.ckf import VehicleStateCKF
-from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.estimators.fusion.config import FusionConfig
+from vehicle_estimation.estimators.fusion.esekf import FusionEKF
 from vehicle_estimation.estimators.mass.mass_ffrls import FFRLSMassConfig, FFRLSMassEstimator
 from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator, MassRLSConfig
 from vehicle_estimation.estimators.slope.cubic_prediction import (

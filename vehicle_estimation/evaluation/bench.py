@@ -110,7 +110,8 @@ class DriveArrays:
 
 
 def bench_fusion(d: DriveArrays) -> list[StepTiming]:
-    from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+    from vehicle_estimation.estimators.fusion.config import FusionConfig
+    from vehicle_estimation.estimators.fusion.esekf import FusionEKF
     # As params/estimation.yaml runs it: the mounting states on, with the tight vertical constraint.
     ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1))
     events = [(float(t), 0, i) for i, t in enumerate(d.imu_t)]
