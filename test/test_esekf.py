@@ -1,4 +1,4 @@
-"""Tests for vehicle_estimation.estimators.fusion.esekf (paper 003 ES-EKF), on a synthetic drive.
+"""Tests for vehicle_estimation.estimators.fusion (paper 003 ES-EKF), on a synthetic drive.
 
 The generator below is self-contained: a car rests for 10 s, accelerates, turns,
 climbs and descends a 4 % grade, loses GNSS for 30 s (including a U-turn) and
@@ -11,7 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.estimators.fusion.config import FusionConfig
+from vehicle_estimation.estimators.fusion.esekf import FusionEKF
 from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 
 G = 9.80665

@@ -440,6 +440,7 @@ def test_mass_node_ffrls_uses_braking_samples():
     ("state_node", "filter:=aoukf;aoukf.outlier_c:=-1.0", "outlier_c"),
     ("state_node", "filter:=aoukf;aoukf_correction:=/nonexistent/weights.npz", "aoukf_correction"),
     ("slope_node", "method:=bogus", "method"),
+    ("slope_node", "cubic_prediction.fit_min_points:=2", "cubic_prediction.fit_min_points"),
     ("state_node", "vehicle.mass:=-5.0", "vehicle.mass"),
     ("fusion_node", "fusion.mounting_rpy:=[0.0, 5.0, 0.0]", "mounting_rpy"),
 ])

@@ -37,17 +37,16 @@ from sensor_msgs.msg import Imu, JointState
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
 from vehicle_estimation.estimators.state.ckf import VehicleStateCKF
-from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.estimators.fusion.config import FusionConfig
+from vehicle_estimation.estimators.fusion.esekf import FusionEKF
 from vehicle_estimation.estimators.mass.mass_ffrls import FFRLSMassConfig, FFRLSMassEstimator
 from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator, MassRLSConfig
-from vehicle_estimation.estimators.slope.slope import (
-    ClassicalSlopeConfig,
-    ClassicalSlopeObserver,
+from vehicle_estimation.estimators.slope.cubic_prediction import (
     CubicPredictionSlopeConfig,
     CubicPredictionSlopeObserver,
-    PitchGradeConfig,
-    PitchGradeSlope,
 )
+from vehicle_estimation.estimators.slope.observers import ClassicalSlopeConfig, ClassicalSlopeObserver
+from vehicle_estimation.estimators.slope.pitch_grade import PitchGradeConfig, PitchGradeSlope
 from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig, TaAekfMassEstimator
 from vehicle_estimation.estimators.state.vbackf import VehicleStateVBACKF
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs

@@ -1,18 +1,27 @@
-"""Tests of the road-slope observers (vehicle_estimation.estimators.slope.slope)."""
+"""Tests of the road-slope cores (vehicle_estimation.estimators.slope) and their registry."""
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from vehicle_estimation.estimators.slope.slope import (
-    SLOPE_METHODS,
-    ClassicalSlopeConfig,
-    ClassicalSlopeObserver,
-    PitchGradeConfig,
-    PitchGradeSlope,
-    grade_from_pitch,
+from vehicle_estimation.contract.vehicle import VehicleParams
+from vehicle_estimation.estimators.interfaces import SlopeEstimator
+from vehicle_estimation.estimators.registry import SLOPE_METHODS
+from vehicle_estimation.estimators.slope.auto import SOURCE_FUSION, SOURCE_OBSERVER
+from vehicle_estimation.estimators.slope.cubic_prediction import (
+    PAPER_LUENBERGER_GAIN,
+    CubicPredictionSlopeConfig,
+    CubicPredictionSlopeObserver,
+    SlopePredictionModel,
+    cubic_observer_design,
+    luenberger_gain_for_poles,
 )
+from vehicle_estimation.estimators.slope.observers import ClassicalSlopeConfig, ClassicalSlopeObserver
+from vehicle_estimation.estimators.slope.pitch_grade import PitchGradeConfig, PitchGradeSlope, grade_from_pitch
+from vehicle_estimation.estimators.slope.road_slope import GradeSample, RoadSlopeEstimator
+from vehicle_estimation.estimators.slope.suspension import SuspensionPitch
 
 G = 9.80665
 DT = 0.01
@@ -118,24 +127,105 @@ def test_pitch_grade_lwma_delay():
     assert obs.slope == pytest.approx(0.02)
 
 
-def test_registry():
-    assert SLOPE_METHODS["classical"] is ClassicalSlopeObserver
-    assert SLOPE_METHODS["fusion_pitch"] is PitchGradeSlope
-    assert SLOPE_METHODS["cubic_prediction"] is CubicPredictionSlopeObserver
+def test_registry_builds_every_method_as_a_slope_estimator():
+    assert list(SLOPE_METHODS) == ["auto", "classical", "cubic_prediction", "fusion_pitch"]
+    sources = {"auto": (PitchGradeSlope, CubicPredictionSlopeObserver),
+               "classical": (None, ClassicalSlopeObserver),
+               "cubic_prediction": (None, CubicPredictionSlopeObserver),
+               "fusion_pitch": (PitchGradeSlope, None)}
+    for name, method in SLOPE_METHODS.items():
+        assert method.name == name == method.config_prefix
+        core = method.build(VehicleParams(), method.config_type())
+        assert isinstance(core, SlopeEstimator) and isinstance(core.published, SlopeEstimator)
+        grade, observer = sources[name]
+        assert (core.grade is None) == (grade is None) and (core.observer is None) == (observer is None)
+        if grade is not None:
+            assert type(core.grade) is grade and isinstance(core.grade, SlopeEstimator)
+        if observer is not None:
+            assert type(core.observer) is observer and isinstance(core.observer, SlopeEstimator)
+        assert core.requires_grade == (name == "fusion_pitch")
+        assert not core.converged and (name == "auto") == bool(core.status())
+
+
+def test_auto_asks_for_the_configs_of_the_methods_it_combines():
+    asked = []
+
+    def configure(prefix, defaults):
+        asked.append(prefix)
+        return dataclasses.replace(defaults, converged_std=0.01)
+
+    method = SLOPE_METHODS["auto"]
+    core = method.build(VehicleParams(), method.config_type(), configure)
+    assert asked == ["fusion_pitch", "cubic_prediction"]
+    assert core.grade.config.converged_std == core.observer.config.converged_std == 0.01
+
+
+def test_suspension_pitch_is_a_first_order_lag_of_the_acceleration():
+    gain, tau, dt = 0.002, 0.15, 0.005
+    t = np.arange(0.0, 2.0, dt)
+    accel = np.where(t >= 0.5, 2.0, 0.0)
+    accel[150] = math.nan                       # a bad sample holds the pitch
+    squat = SuspensionPitch(gain, tau)
+    pitch = np.array([squat.update(tk, ak) for tk, ak in zip(t, accel)])
+    # the step response of the lag, sample by sample (the skipped sample's interval included)
+    expected = np.where(t >= 0.5, gain * 2.0 * (1.0 - np.exp(-(t - 0.5 + dt) / tau)), 0.0)
+    used = np.arange(len(t)) != 150
+    np.testing.assert_allclose(pitch[used], expected[used], rtol=1e-9, atol=1e-15)
+    assert pitch[150] == pitch[149]
+    assert pitch[-1] == pytest.approx(gain * 2.0, rel=1e-4)
+    # no time constant: the pitch follows at once; a 10-s gap counts as 1 s; reset forgets
+    instant = SuspensionPitch(gain, 0.0)
+    assert instant.update(0.0, 1.0) == instant.update(0.1, 1.0) == pytest.approx(gain)
+    slow = SuspensionPitch(gain, 1.0)
+    slow.update(0.0, 0.0)
+    assert slow.update(10.0, 1.0) == pytest.approx(gain * (1.0 - math.exp(-1.0)))
+    slow.reset()
+    assert slow.state == 0.0 and slow.t is None
+    assert slow.update(0.0, 3.0) == pytest.approx(3.0 * gain)      # the first sample sets it
+
+
+def test_road_slope_takes_the_suspension_pitch_out_of_both_sources():
+    """On a 3 % grade under a constant 1 m/s^2, the body pitches nose up by pitch_gain * a:
+    the fusion grade and the accelerometer both carry it; the auto estimate does not."""
+    vehicle = VehicleParams()
+    grade, a = math.atan(0.03), 1.0
+    squat = vehicle.pitch_gain * a
+    method = SLOPE_METHODS["auto"]
+    core = method.build(vehicle, method.config_type())
+    v, dt = 10.0, 0.005
+    for k in range(8000):
+        t = k * dt
+        fusion = GradeSample(grade + squat, 1e-6, True) if k < 6000 else None   # then the grade drops out
+        body = grade + squat
+        assert core.step(t, a + vehicle.gravity * math.sin(body), 0.0, grade=fusion, velocity=(v, 0.0),
+                         accel_bias_variance=1e-4) == 0
+        v += a * dt
+        if k == 5999:
+            assert core.auto.source == SOURCE_FUSION and core.grade.slope == pytest.approx(grade, abs=1e-5)
+            assert core.slope == pytest.approx(grade, abs=1e-5)
+            assert core.observer.slope == pytest.approx(grade, abs=math.radians(0.1))
+    assert core.auto.source == SOURCE_OBSERVER and core.auto.switches == 2
+    assert core.slope == pytest.approx(grade, abs=math.radians(0.1))
+    # the bias variance enters the observer's variance as (std / g)^2
+    assert core.variance >= 1e-4 / vehicle.gravity ** 2
+    assert core.status()["slope source"].startswith("cubic_prediction")
+    assert core.step(39.0, math.nan, 0.0, velocity=(v, 0.0)) == 1          # counted as rejected
+    core.reset()
+    assert core.suspension.t is None and math.isnan(core.grade.slope) and core.auto.source == SOURCE_OBSERVER
+
+
+def test_road_slope_needs_one_source_or_two_with_a_selection():
+    vehicle = VehicleParams()
+    with pytest.raises(ValueError, match="needs"):
+        RoadSlopeEstimator(vehicle)
+    with pytest.raises(ValueError, match="auto selection"):
+        RoadSlopeEstimator(vehicle, grade=PitchGradeSlope(), observer=ClassicalSlopeObserver())
 
 
 # --------------------------------------------------------------------------------------
 # cubic_prediction: slope prediction model + cubic observer (paper 004 Sec. 5, Eqs. 15-27)
 # --------------------------------------------------------------------------------------
 
-from vehicle_estimation.estimators.slope.slope import (  # noqa: E402
-    PAPER_LUENBERGER_GAIN,
-    CubicPredictionSlopeConfig,
-    CubicPredictionSlopeObserver,
-    SlopePredictionModel,
-    cubic_observer_design,
-    luenberger_gain_for_poles,
-)
 
 
 def _noise_free_drive(observer, theta_of_t, seconds, dt=0.005):
@@ -329,7 +419,7 @@ def test_cubic_prediction_step_signature_matches_classical():
     import inspect
     assert (list(inspect.signature(CubicPredictionSlopeObserver.step).parameters)
             == list(inspect.signature(ClassicalSlopeObserver.step).parameters))
-    obs = SLOPE_METHODS["cubic_prediction"]()
+    obs = CubicPredictionSlopeObserver()
     assert obs.step(0.0, 0.0, 15.0, yaw_rate=0.0)      # the node's call
     assert not obs.converged and obs.variance > 0.0
 

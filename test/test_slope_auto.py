@@ -1,4 +1,4 @@
-"""The ``auto`` slope source selection (estimators/slope/slope_auto.py): fusion grade, else the observer."""
+"""The ``auto`` slope source selection (estimators/slope/auto.py): fusion grade, else the observer."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from vehicle_estimation.estimators.slope.slope_auto import (
+from vehicle_estimation.estimators.slope.auto import (
     SOURCE_FUSION, SOURCE_OBSERVER, AutoSlope, AutoSlopeConfig)
 
 

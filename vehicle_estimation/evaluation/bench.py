@@ -110,7 +110,8 @@ class DriveArrays:
 
 
 def bench_fusion(d: DriveArrays) -> list[StepTiming]:
-    from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+    from vehicle_estimation.estimators.fusion.config import FusionConfig
+    from vehicle_estimation.estimators.fusion.esekf import FusionEKF
     # As params/estimation.yaml runs it: the mounting states on, with the tight vertical constraint.
     ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1))
     events = [(float(t), 0, i) for i, t in enumerate(d.imu_t)]
@@ -137,11 +138,9 @@ def bench_fusion(d: DriveArrays) -> list[StepTiming]:
 
 
 def bench_slope(d: DriveArrays) -> list[StepTiming]:
-    from vehicle_estimation.estimators.slope.slope import (
-        ClassicalSlopeObserver,
-        CubicPredictionSlopeObserver,
-        PitchGradeSlope,
-    )
+    from vehicle_estimation.estimators.slope.cubic_prediction import CubicPredictionSlopeObserver
+    from vehicle_estimation.estimators.slope.observers import ClassicalSlopeObserver
+    from vehicle_estimation.estimators.slope.pitch_grade import PitchGradeSlope
     t = d.imu_t
     vx = d.at_truth("vx", t)
     grade = d.at_truth("slope", t)

@@ -45,7 +45,7 @@ def _dataclass_defaults() -> dict[str, dict[str, Any]]:
     import dataclasses
 
     from vehicle_estimation.contract.vehicle import VehicleParams
-    from vehicle_estimation.estimators.fusion.esekf import FusionConfig
+    from vehicle_estimation.estimators.fusion.config import FusionConfig
     from vehicle_estimation.estimators.mass.mass_rls import MassRLSConfig
 
     def prefixed(prefix: str, obj: Any) -> dict[str, Any]:

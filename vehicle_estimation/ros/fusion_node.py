@@ -25,7 +25,8 @@ from sensor_msgs.msg import Imu, NavSatFix, NavSatStatus
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
 from vehicle_estimation.estimators.common.rotations import rotmat_to_quat
-from vehicle_estimation.estimators.fusion.esekf import FusionConfig, FusionEKF
+from vehicle_estimation.estimators.fusion.config import FusionConfig
+from vehicle_estimation.estimators.fusion.esekf import FusionEKF
 from vehicle_estimation.ros.conversions import MAX_SPEED, imu_arrays, imu_plausible
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node

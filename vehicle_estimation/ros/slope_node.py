@@ -5,7 +5,7 @@ Methods (parameter ``method``):
 * ``auto`` (default): ``fusion_pitch`` while the fusion grade is fresh and converged, else
   ``cubic_prediction``; both run all the time, so the observer is converged when the fusion
   grade drops out (no GNSS, fusion not aligned, upstream missing), and a switch fades the
-  difference out instead of jumping (:mod:`vehicle_estimation.estimators.slope.slope_auto`).
+  difference out instead of jumping (:mod:`vehicle_estimation.estimators.slope.auto`).
   ``/diagnostics`` names the source in use.
 * ``fusion_pitch``: the grade of paper 003 Sec. 7.2, i.e. the pitch of the fusion
   node's error-state EKF (``estimation/fusion/road_grade``), smoothed as paper 003 Sec. 7.1 does.
@@ -14,7 +14,11 @@ Methods (parameter ``method``):
   (Eqs. 21-27), on the bias-compensated longitudinal specific force and the vehicle speed.
 * ``classical``: the contrast of paper 004 Eqs. 32-33 (θ̇ = 0 slope model).
 
-Each method's tuning is declared as ``<method>.*`` parameters (its config dataclass).
+Each method's tuning is declared as ``<method>.*`` parameters (its config dataclass); ``auto``
+declares those of the two methods it combines too. The node builds the method from
+:data:`vehicle_estimation.estimators.registry.SLOPE_METHODS` and finds its inputs at each IMU
+stamp; the estimation, suspension pitch included, is
+:class:`~vehicle_estimation.estimators.slope.road_slope.RoadSlopeEstimator`.
 
 Subscribes: ``imu/data`` (sensor-data QoS, the trigger), ``vehicle/speed`` (sensor-data QoS,
 speed fallback), ``estimation/imu_bias`` (fusion bias), ``estimation/fusion/road_grade``,
@@ -34,12 +38,8 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import Float64
 
 from vehicle_estimation.contract import topics
-from vehicle_estimation.estimators.slope import slope as slope_core
-from vehicle_estimation.estimators.slope.slope_auto import (
-    SOURCE_FUSION,
-    AutoSlope,
-    AutoSlopeConfig,
-)
+from vehicle_estimation.estimators.registry import SLOPE_METHODS
+from vehicle_estimation.estimators.slope.road_slope import GradeSample
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED,
     forward_speed_entry,
@@ -59,42 +59,8 @@ from vehicle_estimation.ros.runtime.upstream import (
     is_fresh,
 )
 
-METHODS = ("auto", *slope_core.SLOPE_METHODS)
-CONFIGS = {"classical": slope_core.ClassicalSlopeConfig,
-           "cubic_prediction": slope_core.CubicPredictionSlopeConfig,
-           "fusion_pitch": slope_core.PitchGradeConfig}
 #: Variance published while no estimate exists yet: a 10 deg 1-sigma prior.
 PRIOR_VARIANCE = math.radians(10.0) ** 2
-
-
-class SuspensionPitch:
-    """Body pitch on the suspension from longitudinal acceleration (squat and dive).
-
-    The fusion pitch is the IMU's, i.e. the body's; the road's grade is that minus the pitch
-    the suspension adds, ``pitch_gain * a_x`` through a first-order lag of
-    ``pitch_time_constant`` (vehicle parameters). Uncorrected, it makes the grade error follow
-    the acceleration, which is exactly what the mass estimator's regressor cannot tolerate.
-    """
-
-    def __init__(self, gain: float, time_constant: float) -> None:
-        self.gain, self.tau = gain, time_constant
-        self.state = 0.0
-        self.t: float | None = None
-
-    def update(self, t: float, accel: float) -> float:
-        if not math.isfinite(accel):
-            return self.state
-        target = self.gain * accel
-        if self.t is None or self.tau <= 0.0:
-            self.state = target
-        else:
-            dt = min(max(t - self.t, 0.0), 1.0)
-            self.state += (target - self.state) * (1.0 - math.exp(-dt / self.tau))
-        self.t = t
-        return self.state
-
-    def reset(self) -> None:
-        self.state, self.t = 0.0, None
 
 
 class SlopeNode(EstimatorNode):
@@ -104,22 +70,10 @@ class SlopeNode(EstimatorNode):
         self.method = self.declare_str(
             "method", "auto",
             "Slope method; auto: the fusion grade while it is fresh and converged, else the "
-            "cubic_prediction observer on the IMU and a speed", METHODS)
+            "cubic_prediction observer on the IMU and a speed", tuple(SLOPE_METHODS))
         self.rate = self.declare_float("publish_rate_hz", 50.0, "Output rate [Hz]", 0.1, 1000.0)
-        # The cores this method steps: the fusion grade, the IMU + speed observer, or both.
-        self.uses_grade = self.method in ("auto", "fusion_pitch")
-        self.uses_observer = self.method != "fusion_pitch"
-        self.observer_method = "cubic_prediction" if self.method == "auto" else self.method
-        self.configs = {}
-        if self.uses_grade:
-            self.configs["fusion_pitch"] = self.declare_config("fusion_pitch", CONFIGS["fusion_pitch"]())
-        if self.uses_observer:
-            self.configs[self.observer_method] = self.declare_config(
-                self.observer_method, CONFIGS[self.observer_method]())
-        if self.method == "auto":
-            self.auto_config = self.declare_config("auto", AutoSlopeConfig())
-        self._make_cores()
-        self.squat = SuspensionPitch(self.vehicle.pitch_gain, self.vehicle.pitch_time_constant)
+        self.configs: dict[str, object] = {}
+        self._make_core()
         self.bias = FusionImuBias()
         self.grade = UpstreamHistory()
         self.state_speed = UpstreamHistory()
@@ -131,26 +85,29 @@ class SlopeNode(EstimatorNode):
         self.pub_stamped = self.publisher(Vector3Stamped, topics.ROAD_SLOPE_STAMPED)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         # Subscribe only to what the method uses: every subscription costs CPU at 100-200 Hz.
-        if self.uses_grade:
+        if self.core.uses_grade:
             self.subscribe_upstream(Vector3Stamped, topics.FUSION_GRADE, self.grade, companion_value)
-        if self.uses_observer:
+        if self.core.uses_observer:
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
             self.subscribe_imu_bias(self.bias)
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
                                     planar_velocity_entry)
             self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
 
-    def _make_cores(self) -> None:
-        """``self.core`` is what is published: the one core, or the auto selection of two."""
+    def _config(self, prefix: str, defaults: object) -> object:
+        """The ``<prefix>.*`` parameters as a config, declared on first use."""
+        if prefix not in self.configs:
+            self.configs[prefix] = self.declare_config(prefix, defaults)
+        return self.configs[prefix]
+
+    def _make_core(self) -> None:
+        """``self.core``: the method's sources, from the registry (again after a reset)."""
+        method = SLOPE_METHODS[self.method]
+        config = self._config(method.config_prefix, method.config_type())
         try:
-            self.grade_core = (slope_core.PitchGradeSlope(self.configs["fusion_pitch"])
-                               if self.uses_grade else None)
-            self.observer = (slope_core.SLOPE_METHODS[self.observer_method](self.configs[self.observer_method])
-                             if self.uses_observer else None)
-            if self.method == "auto":
-                self.core = AutoSlope(self.grade_core, self.observer, self.auto_config)
-            else:
-                self.core = self.grade_core if self.grade_core is not None else self.observer
+            self.core = method.build(self.vehicle, config, self._config)
+        except ParameterError:
+            raise
         except ValueError as exc:
             raise ParameterError(f"method '{self.method}': {exc}") from exc
 
@@ -181,41 +138,21 @@ class SlopeNode(EstimatorNode):
         if not imu_plausible(f, w):
             self.reject("imu:implausible")
             return
-        grade_usable = False
-        fresh_grade = None
-        if self.grade_core is not None:
+        grade = None
+        if self.core.uses_grade:
             item = self.grade.at(t)
             missing = item is None or not is_fresh(t, item.stamp)
-            # With auto the observer takes over: a fallback, not a missing input.
-            self.set_missing("fusion road grade", missing and self.method == "fusion_pitch")
-            fresh_grade = None if missing else item
-        if self.observer is not None:
+            # Where an observer stands in, a missing grade is a fallback, not a missing input.
+            self.set_missing("fusion road grade", missing and self.core.requires_grade)
+            grade = None if missing else GradeSample(item.value, item.variance, item.converged)
+        velocity = None
+        if self.core.uses_observer:
             f, w = self.bias.correct(t, f, w)
-        # The body's pitch on its suspension (one filter step per IMU sample), driven by the
-        # acceleration less gravity along the best slope known now: it tilts both the fusion
-        # pitch and the accelerometer, so both sources take it out to get the road's grade.
-        reference = (fresh_grade.value if fresh_grade is not None
-                     else self.observer.slope if self.observer is not None else 0.0)
-        squat = self.squat.update(t, float(f[0]) - self.vehicle.gravity * math.sin(reference))
-        if fresh_grade is not None:
-            if not self.grade_core.step(t, fresh_grade.value - squat, fresh_grade.variance):
-                self.reject("slope:rejected_by_core")
-            grade_usable = fresh_grade.converged and self.grade_core.converged
-        if self.observer is not None:
             velocity = self.velocity_at(t)
             self.set_missing("vehicle speed", velocity is None)
-            # Eq. 21: a_x,acc = vx' - r vy + g theta (the observer adds r vy back).
-            ax = float(f[0]) - self.vehicle.gravity * math.sin(squat)
-            if velocity is not None and not self.observer.step(t, ax, velocity[0],
-                                                               yaw_rate=float(w[2]), vy=velocity[1]):
-                self.reject("slope:rejected_by_core")
-        if isinstance(self.core, AutoSlope):
-            # The accelerometer bias left in the observer's input goes into its slope one to one:
-            # the fusion's bias uncertainty, or without the fusion the sensor's turn-on bias.
-            bias_variance = self.bias.accel_x_variance_at(t)
-            if bias_variance is None:
-                bias_variance = self.auto_config.uncompensated_accel_bias_std ** 2
-            self.core.update(t, grade_usable, bias_variance / self.vehicle.gravity ** 2)
+        for _ in range(self.core.step(t, float(f[0]), float(w[2]), grade=grade, velocity=velocity,
+                                      accel_bias_variance=self.bias.accel_x_variance_at(t))):
+            self.reject("slope:rejected_by_core")
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
@@ -231,8 +168,7 @@ class SlopeNode(EstimatorNode):
         self.publish(self.pub, Float64(data=float(slope)))
 
     def reset_estimators(self) -> None:
-        self._make_cores()
-        self.squat.reset()
+        self._make_core()
         self.bias.clear()
         for history in (self.grade, self.state_speed, self.odom_speed):
             history.clear()
@@ -242,16 +178,10 @@ class SlopeNode(EstimatorNode):
     def status_values(self) -> dict[str, str]:
         values = {"method": self.method, "slope [deg]": f"{math.degrees(self.core.slope):.3f}",
                   "converged": str(self.core.converged)}
-        if self.observer is not None:
+        if self.core.uses_observer:
             values["imu bias from fusion"] = str(self.bias.valid)
-        if isinstance(self.core, AutoSlope):
-            values["slope source"] = (
-                "fusion_pitch (fusion grade)" if self.core.source == SOURCE_FUSION
-                else "cubic_prediction (IMU + speed observer: fusion grade missing or not converged)")
-            values["slope source switches"] = str(self.core.switches)
+        values.update(self.core.status())
         return values
-
-
 
 
 def main(args: list[str] | None = None) -> int:

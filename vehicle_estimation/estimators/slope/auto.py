@@ -1,12 +1,14 @@
 """The slope source a car can afford right now: the fusion grade, else the IMU + speed observer.
 
-Paper 003's grade (the fusion pitch, :class:`~vehicle_estimation.estimators.slope.slope.PitchGradeSlope`)
-is the more accurate where GNSS aids the fusion; paper 004's observer
-(:class:`~vehicle_estimation.estimators.slope.slope.CubicPredictionSlopeObserver`) needs only the IMU and a
-speed. :class:`AutoSlope` steps neither: the caller steps both cores on every sample, so the
-observer is converged whenever the fusion grade drops out (a node started without GNSS, a
-fusion that has not aligned, a stale upstream), and asks :meth:`AutoSlope.update` which one to
-publish.
+Paper 003's grade (the fusion pitch,
+:class:`~vehicle_estimation.estimators.slope.pitch_grade.PitchGradeSlope`) is the more accurate
+where GNSS aids the fusion; paper 004's observer
+(:class:`~vehicle_estimation.estimators.slope.cubic_prediction.CubicPredictionSlopeObserver`)
+needs only the IMU and a speed. :class:`AutoSlope` steps neither: the caller
+(:class:`~vehicle_estimation.estimators.slope.road_slope.RoadSlopeEstimator`) steps both cores on
+every sample, so the observer is converged whenever the fusion grade drops out (a node started
+without GNSS, a fusion that has not aligned, a stale upstream), and asks :meth:`AutoSlope.update`
+which one to publish.
 
 A switch must not make the published slope jump (a controller acting on the grade would feel
 it as a step of ``g`` times the difference in its feed-forward force). At a switch the
@@ -19,48 +21,36 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Protocol
 
-__all__ = ["AutoSlope", "AutoSlopeConfig", "SlopeEstimate", "SOURCE_FUSION", "SOURCE_OBSERVER"]
+from vehicle_estimation.contract.settings import check_settings, setting
+from vehicle_estimation.estimators.interfaces import SlopeEstimator
+
+__all__ = ["AutoSlope", "AutoSlopeConfig", "SOURCE_FUSION", "SOURCE_OBSERVER"]
 
 SOURCE_FUSION = "fusion_pitch"
 SOURCE_OBSERVER = "cubic_prediction"
-
-
-class SlopeEstimate(Protocol):
-    """What every slope core offers (see :mod:`vehicle_estimation.estimators.slope.slope`)."""
-
-    @property
-    def slope(self) -> float: ...
-
-    @property
-    def variance(self) -> float: ...
-
-    @property
-    def converged(self) -> bool: ...
+#: The ``slope source`` entry of ``/diagnostics``, per source.
+SOURCE_STATUS = {
+    SOURCE_FUSION: "fusion_pitch (fusion grade)",
+    SOURCE_OBSERVER: "cubic_prediction (IMU + speed observer: fusion grade missing or not converged)",
+}
 
 
 @dataclasses.dataclass
 class AutoSlopeConfig:
-    """Source selection of the ``auto`` slope method.
+    """Source selection of the ``auto`` slope method."""
 
-    Attributes:
-        switch_time_constant_s: the offset between the sources at a switch fades out with
-            this time constant [s].
-        uncompensated_accel_bias_std: std of an accelerometer bias the observer cannot remove
-            while the fusion's bias estimate is missing [m/s^2]; enters the observer's variance
-            as (std / g)^2. 0.05 m/s^2 is a typical MEMS turn-on bias.
-    """
-
-    switch_time_constant_s: float = 2.0
-    uncompensated_accel_bias_std: float = 0.05
+    switch_time_constant_s: float = setting(
+        2.0, "The offset between the sources at a switch fades out with this time constant [s]",
+        low=0.0, low_open=True)
+    uncompensated_accel_bias_std: float = setting(
+        0.05, "Std of an accelerometer bias the observer cannot remove while the fusion's bias estimate "
+        "is missing [m/s^2]; enters the observer's variance as (std / g)^2 (0.05: a typical MEMS "
+        "turn-on bias)", low=0.0)
 
     def validate(self) -> None:
-        if not (math.isfinite(self.switch_time_constant_s) and self.switch_time_constant_s > 0.0):
-            raise ValueError(f"switch_time_constant_s must be > 0, got {self.switch_time_constant_s!r}")
-        if not (math.isfinite(self.uncompensated_accel_bias_std) and self.uncompensated_accel_bias_std >= 0.0):
-            raise ValueError("uncompensated_accel_bias_std must be >= 0, "
-                             f"got {self.uncompensated_accel_bias_std!r}")
+        """Raise ``ValueError`` naming the first bad field."""
+        check_settings(self)
 
 
 class AutoSlope:
@@ -74,7 +64,7 @@ class AutoSlope:
         :class:`AutoSlopeConfig`.
     """
 
-    def __init__(self, fusion: SlopeEstimate, observer: SlopeEstimate,
+    def __init__(self, fusion: SlopeEstimator, observer: SlopeEstimator,
                  config: AutoSlopeConfig | None = None) -> None:
         self.fusion = fusion
         self.observer = observer
@@ -91,7 +81,7 @@ class AutoSlope:
         self._extra_variance = 0.0
         self._published = math.nan
 
-    def _core(self, source: str) -> SlopeEstimate:
+    def _core(self, source: str) -> SlopeEstimator:
         return self.fusion if source == SOURCE_FUSION else self.observer
 
     def update(self, t: float, fusion_usable: bool, observer_extra_variance: float = 0.0) -> None:
@@ -133,3 +123,7 @@ class AutoSlope:
     @property
     def converged(self) -> bool:
         return bool(self._core(self.source).converged)
+
+    def status(self) -> dict[str, str]:
+        """The source in use and how often it changed, for ``/diagnostics``."""
+        return {"slope source": SOURCE_STATUS[self.source], "slope source switches": str(self.switches)}

@@ -1,0 +1,161 @@
+"""Tuning of the IMU / GNSS / CAN-speed fusion (:class:`FusionConfig`), paper 003 Tables 2-3."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from vehicle_estimation.contract.settings import check_settings, setting
+from vehicle_estimation.contract.vehicle import GRAVITY, dataclass_from_mapping
+
+__all__ = ["FusionConfig"]
+
+#: Fields where None is valid and means "off" (see their docs).
+OPTIONAL_FIELDS = ("nh_update_rate_hz", "gnss_gate_chi2", "speed_gate_chi2")
+
+
+@dataclass
+class FusionConfig:
+    """Filter tuning.  Defaults are paper 003 Tables 2-3 (SI units) where the paper
+    gives a value; the remaining fields are implementation choices documented here.
+
+    The paper's process noise is in discrete "per IMU sample" form, Eq. (34): velocity
+    and attitude noise enter as ``Ts * R * w`` (variance ``Ts^2 sigma^2`` per step) and
+    the bias random walks as ``I * w`` (variance ``sigma^2`` per step).  The bias terms
+    are scaled by ``dt * imu_rate_hz`` so that they equal the paper at the nominal rate
+    and stay consistent under timing jitter.
+
+    A CAN speed of 0 is only trusted while the IMU agrees (quantised or low-rate CAN reads 0
+    for a while after the car starts to roll): the low-passed gravity-free acceleration and
+    angular rate must be below ``stationary_max_accel`` and ``stationary_max_rate``.
+
+    In-motion alignment (not in the paper, which starts at standstill): a filter started while
+    the car drives (a node restart, a bag cut mid-drive) levels itself on the mean specific
+    force minus the CAN-speed kinematics over ``in_motion_window_s``, with the ``in_motion_*``
+    priors.
+
+    Without GNSS (not in the paper, which always has it) the along-track (and lateral)
+    accelerometer bias and the pitch (roll) enter every measurement only as the sum
+    ``g tilt + bias``: one direction of the error state is unobservable. The paper's bias
+    random walk then lets the split wander with whatever the model gets wrong (on FASTSim's
+    hilly drive the x bias reached +2 m/s^2 and the grade -10 deg in 600 s; the true bias is
+    0.05). So the accelerometer bias is held while no valid fix has come for
+    ``gnss_aiding_timeout_s``, and every correction of the sum goes into the tilt, which the
+    gyro carries between corrections. A bias that no fix has ever observed is only known to
+    its prior (``unaided_accel_bias_sigma``, the typical turn-on bias of a MEMS accelerometer);
+    it enters the grade variance, and the published bias covariance, as a 'consider' term: it
+    is not in the filter's P, because a large P there would move corrections of the sum into
+    the bias (the drift above).
+
+    Without GNSS nothing observes the heading, so nothing observes the z gyro bias either (the
+    alignment's standstill mean set it), yet the non-holonomic constraint couples it to the
+    lateral accelerometer bias (``v_y' = a_y - r v_x``: a yaw-rate error looks like
+    ``b_y / v_x``) and the filter trades one for the other (on FASTSim's drive the z bias went
+    from -2 to +2 mrad/s). ``hold_yaw_rate_bias_without_gnss`` makes it a 'consider' state while
+    no fix aids (a Schmidt update: its gain is zero, its covariance and cross-covariances are
+    kept, Joseph form), corrected by GNSS.
+    """
+
+    gravity: float = setting(GRAVITY, "Gravitational acceleration [m/s^2] (paper uses 9.81, Eq. (27))",
+                             low=0.0, low_open=True)
+    imu_rate_hz: float = setting(200.0, "Nominal IMU rate the per-sample process noise refers to [Hz]",
+                                 low=0.0, low_open=True)
+    # --- Table 2: initial state standard deviations (P0) ---
+    p0_position_sigma: float = setting(2.0, "Initial position std [m] (Table 2)", low=0.0, low_open=True)
+    p0_velocity_sigma: float = setting(0.5, "Initial velocity std [m/s] (Table 2)", low=0.0, low_open=True)
+    p0_attitude_sigma: tuple = setting((5e-3, 5e-3, 10e-3), "Initial attitude std about world x, y, z [rad] "
+                                       "(Table 2)", each=True, low=0.0, low_open=True)
+    p0_accel_bias_sigma: float = setting(0.005, "Initial accelerometer bias std [m/s^2] (Table 2)",
+                                         low=0.0, low_open=True)
+    p0_gyro_bias_sigma: float = setting(0.0008, "Initial gyro bias std [rad/s] (Table 2)", low=0.0, low_open=True)
+    # --- Table 3 (left): process noise Q ---
+    q_accel_sigma: float = setting(0.03, "Accelerometer noise [m/s^2] (Table 3)", low=0.0, low_open=True)
+    q_gyro_sigma: float = setting(1e-5, "Gyro noise [rad/s] (Table 3)", low=0.0, low_open=True)
+    q_accel_bias_sigma: float = setting(1e-3, "Accelerometer bias random walk per sample [m/s^2] (Table 3)",
+                                        low=0.0, low_open=True)
+    q_gyro_bias_sigma: float = setting(1e-6, "Gyro bias random walk per sample [rad/s] (Table 3)",
+                                       low=0.0, low_open=True)
+    # --- Table 3 (right): measurement noise W ---
+    gnss_sigma: tuple = setting((2.0, 2.0, 5.0), "GNSS position std E, N, U where a fix gives no covariance [m] "
+                                "(Table 3)", each=True, low=0.0, low_open=True)
+    speed_sigma: float = setting(0.5, "CAN speed std [m/s] (Table 3)", low=0.0, low_open=True)
+    nh_sigma_y: float = setting(5.0, "Lateral non-holonomic constraint std [m/s] (Table 3)",
+                                low=0.0, low_open=True)
+    nh_sigma_z: float = setting(15.0, "Vertical non-holonomic constraint std [m/s] (Table 3)",
+                                low=0.0, low_open=True)
+    # --- stationary updates (paper: "greatly reduced" NH variances; value not given) ---
+    stationary_sigma: float = setting(0.02, "Non-holonomic std while stationary [m/s]", low=0.0, low_open=True)
+    stationary_update_longitudinal: bool = setting(True, "Also pseudo-measure body-x speed 0 at standstill")
+    stationary_speed_threshold: float = setting(0.05, "|CAN speed| at or below this is stationary [m/s]", low=0.0)
+    stationary_max_accel: float = setting(0.15, "Stationary only while the low-passed gravity-free acceleration "
+                                          "is below this [m/s^2]", low=0.0, low_open=True)
+    stationary_max_rate: float = setting(0.03, "Stationary only while the low-passed angular rate is below this "
+                                         "[rad/s]", low=0.0, low_open=True)
+    stationary_imu_tau_s: float = setting(0.1, "Time constant of the low-pass of the stationarity test [s]",
+                                          low=0.0, low_open=True)
+    speed_timeout_s: float = setting(0.5, "A CAN speed older than this leaves stationarity unknown [s]",
+                                     low=0.0, low_open=True)
+    speed_unsigned: bool = setting(False, "The CAN speed is |v_x| (its sign taken from the estimate)")
+    nh_update_rate_hz: float | None = setting(None, "Rate of the non-holonomic updates [Hz]; None: every IMU "
+                                              "sample, as in the paper", low=0.0, low_open=True)
+    full_velocity_jacobian: bool = setting(True, "Include the attitude term -R^T S(v) in the body-speed Jacobian")
+    # --- initialisation (Sec. 7.1) ---
+    init_stationary_samples: int = setting(200, "Stationary IMU samples averaged by the alignment (Sec. 7.1)",
+                                           low=1)
+    init_max_accel_std: float = setting(0.3, "Largest per-axis accelerometer std over the alignment window "
+                                        "[m/s^2]", low=0.0, low_open=True)
+    init_max_gyro_std: float = setting(0.02, "Largest per-axis gyro std over the alignment window [rad/s]",
+                                       low=0.0, low_open=True)
+    heading_min_baseline_m: float = setting(15.0, "GNSS travel before the yaw is fixed [m]",
+                                            low=0.0, low_open=True)
+    in_motion_alignment: bool = setting(True, "Align while driving when the filter starts in motion")
+    in_motion_window_s: float = setting(5.0, "Continuous motion the in-motion alignment averages [s]",
+                                        low=0.0, low_open=True)
+    in_motion_tilt_sigma: float = setting(0.0175, "Tilt prior after the in-motion alignment [rad]",
+                                          low=0.0, low_open=True)
+    in_motion_gyro_bias_sigma: float = setting(0.005, "Gyro bias prior after the in-motion alignment (no "
+                                               "standstill mean) [rad/s]", low=0.0, low_open=True)
+    heading_max_fixes: int = setting(600, "Most GNSS fixes kept for the heading initialisation", low=2)
+    # --- robustness ---
+    gnss_gate_chi2: float | None = setting(16.27, "Chi-square gate of a GNSS update (chi2(3) 99.9 %); None "
+                                           "disables", low=0.0, low_open=True)
+    speed_gate_chi2: float | None = setting(10.83, "Chi-square gate of a CAN speed update (chi2(1) 99.9 %); None "
+                                            "disables", low=0.0, low_open=True)
+    max_consecutive_rejections: int = setting(10, "Gate rejections in a row after which the covariance block is "
+                                              "re-opened", low=1)
+    max_measurement_delay_s: float = setting(0.5, "Measurements older than the filter by more are rejected [s]",
+                                             low=0.0, low_open=True)
+    max_imu_dt_s: float = setting(0.5, "Larger IMU gaps are propagated but counted [s]", low=0.0, low_open=True)
+    # --- IMU mounting (imu_link in base_link; not in the paper, see the esekf module docstring) ---
+    mounting_rpy: tuple = setting((0.0, 0.0, 0.0), "Nominal roll, pitch, yaw of imu_link in base_link [rad]",
+                                  low=-math.pi, high=math.pi, each=True)
+    estimate_mounting: bool = setting(False, "Refine the mounting pitch and yaw online (needs nh_sigma_z <= 1)")
+    p0_mounting_sigma: float = setting(0.035, "Prior std of the mounting pitch and yaw refinement [rad]", low=0.0)
+    q_mounting_sigma: float = setting(1e-7, "Mounting random walk per sample [rad]: a mounting does not move",
+                                      low=0.0)
+    # --- without GNSS (not in the paper, which always has it; see the class docstring) ---
+    accel_bias_walk_without_gnss: bool = setting(False, "Let the accelerometer bias random-walk without GNSS too "
+                                                 "(the paper's Q)")
+    gnss_aiding_timeout_s: float = setting(5.0, "No valid fix for this long: the accelerometer bias is held [s]",
+                                           low=0.0, low_open=True)
+    unaided_accel_bias_sigma: float = setting(0.05, "Accelerometer bias prior in the grade variance until GNSS "
+                                              "observes it [m/s^2]", low=0.0)
+    hold_yaw_rate_bias_without_gnss: bool = setting(True, "Hold the z gyro bias while no GNSS fix aids (a "
+                                                    "consider state)")
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad field."""
+        check_settings(self, skip=[name for name in OPTIONAL_FIELDS if getattr(self, name) is None])
+        for name in ("p0_attitude_sigma", "gnss_sigma", "mounting_rpy"):
+            if len(getattr(self, name)) != 3:
+                raise ValueError(f"{name} must be 3 numbers, got {getattr(self, name)!r}")
+        if self.estimate_mounting and self.nh_sigma_z > 1.0:
+            raise ValueError(
+                "estimate_mounting needs nh_sigma_z <= 1 m/s: the "
+                f"mounting pitch is observed through the vertical constraint (nh_sigma_z={self.nh_sigma_z!r})")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "FusionConfig":
+        """Build from a (ROS parameter) dict; unknown keys raise ValueError."""
+        return dataclass_from_mapping(cls, d, "unknown FusionConfig field {key!r}")

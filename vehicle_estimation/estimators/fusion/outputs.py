@@ -1,0 +1,167 @@
+"""What the fusion publishes, in REP-103 terms: pose, velocity, grade, biases and their covariances.
+
+The filter's own attitude is the IMU's (``imu_link``, what the gyros integrate); every output
+here is in ``base_link``, through the mounting rotation the filter refines (see
+:mod:`vehicle_estimation.estimators.fusion.esekf`).
+
+:class:`FusionOutputs` is a part of
+:class:`~vehicle_estimation.estimators.fusion.esekf.FusionEKF`, written apart: it reads the
+filter's state, declared below, and changes nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from vehicle_estimation.estimators.common.rotations import euler_from_rotmat, rotmat_to_quat
+from vehicle_estimation.estimators.fusion.config import FusionConfig
+from vehicle_estimation.estimators.fusion.error_state import IA, IBA, IBG, IM, IP, IV, N_ERR
+
+__all__ = ["FusionOutputs"]
+
+
+def _copy_of(attribute: str, doc: str) -> Any:
+    """A read-only property: a copy of the state array ``attribute``."""
+    return property(lambda self: getattr(self, attribute).copy(), doc=doc)
+
+
+def _covariance_block(start: int, size: int, doc: str) -> Any:
+    """A read-only property: a copy of the diagonal block of P from ``start``."""
+    return property(lambda self: self._P[start:start + size, start:start + size].copy(), doc=doc)
+
+
+class FusionOutputs:
+    """The outputs of :class:`FusionEKF` (a mixin of it)."""
+
+    config: FusionConfig
+    _v: np.ndarray
+    _R: np.ndarray
+    _Rm: np.ndarray
+    _ba: np.ndarray
+    _bg: np.ndarray
+    _P: np.ndarray
+    _eye3: np.ndarray
+    _t_gnss_applied: float | None
+    _body_speed_rows: Callable[[list[int]], tuple]
+
+    position_enu = _copy_of("_p", "Position in the ENU frame [m].")
+    velocity_enu = _copy_of("_v", "Velocity in the ENU frame [m/s].")
+    imu_rotation_matrix = _copy_of("_R", "imu_link -> ENU (the filter's own attitude).")
+    mounting_rotation = _copy_of("_Rm", "imu_link -> base_link: the nominal mounting refined online.")
+    accel_bias = _copy_of("_ba", "Accelerometer bias in imu_link [m/s^2] (measured = true + bias).")
+    gyro_bias = _copy_of("_bg", "Gyro bias in imu_link [rad/s] (measured = true + bias).")
+    covariance = _copy_of("_P", "17x17 error-state covariance, order [dp(ENU), dv(ENU), eps(ENU), "
+                                "dba(imu_link), dbg(imu_link), dm (mounting pitch, yaw)].")
+    position_covariance = _covariance_block(IP, 3, "ENU position covariance [m^2].")
+    velocity_covariance = _covariance_block(IV, 3, "ENU velocity covariance [m^2/s^2].")
+    gyro_bias_covariance = _covariance_block(IBG, 3, "Gyro bias covariance [rad^2/s^2].")
+    mounting_covariance = _covariance_block(IM, 2, "2x2 covariance of the mounting pitch and yaw "
+                                                   "refinement [rad^2].")
+
+    @property
+    def accel_bias_observed(self) -> bool:
+        """GNSS has aided the filter since the alignment, so its accelerometer bias is more than
+        the prior (and held at what it learned through a later outage)."""
+        return self._t_gnss_applied is not None
+
+    @property
+    def velocity_body(self) -> np.ndarray:
+        """Velocity in base_link (FLU) [m/s]."""
+        return self._Rm @ (self._R.T @ self._v)
+
+    @property
+    def rotation_matrix(self) -> np.ndarray:
+        """base_link -> ENU."""
+        return self._R @ self._Rm.T
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """(x, y, z, w), base_link FLU -> ENU."""
+        return rotmat_to_quat(self.rotation_matrix)
+
+    @property
+    def mounting_rpy(self) -> np.ndarray:
+        """Roll, pitch, yaw of imu_link in base_link [rad]."""
+        return np.asarray(euler_from_rotmat(self._Rm), float)
+
+    @property
+    def roll(self) -> float:
+        return euler_from_rotmat(self.rotation_matrix)[0]
+
+    @property
+    def pitch(self) -> float:
+        """REP-103 pitch of base_link about its y axis (positive = nose DOWN)."""
+        return euler_from_rotmat(self.rotation_matrix)[1]
+
+    @property
+    def yaw(self) -> float:
+        return euler_from_rotmat(self.rotation_matrix)[2]
+
+    @property
+    def road_grade(self) -> float:
+        """Angle of the base_link x axis above the horizontal [rad], positive nose-up/uphill."""
+        return math.asin(max(-1.0, min(1.0, float(self._R[2] @ self._Rm[0]))))
+
+    @property
+    def velocity_body_covariance(self) -> np.ndarray:
+        """base_link (FLU) velocity covariance, including the attitude and mounting
+        uncertainty (for nav_msgs/Odometry twist, which is in the child/body frame)."""
+        _, H = self._body_speed_rows([0, 1, 2])
+        return H @ self._P @ H.T
+
+    def _base_attitude_jacobian(self) -> np.ndarray:
+        """J with eps_base = J z: R_wb,true = (I - S(eps_base)) R_wb,hat.
+
+        R_wb = R R_m^T; R_m,true^T = (I - S(dm)) R_m^T, so eps_base = eps + R [0, dm]."""
+        J = np.zeros((3, N_ERR))
+        J[:, IA:IA + 3] = self._eye3
+        J[:, IM:IM + 2] = self._R[:, 1:3]
+        return J
+
+    @property
+    def attitude_covariance(self) -> np.ndarray:
+        """base_link attitude error covariance about the fixed ENU x, y, z axes [rad^2]
+        (the sensor_msgs/Imu and nav_msgs/Odometry convention)."""
+        J = self._base_attitude_jacobian()
+        return J @ self._P @ J.T
+
+    @property
+    def _unaided_bias_variance(self) -> float:
+        return 0.0 if self.accel_bias_observed else self.config.unaided_accel_bias_sigma ** 2
+
+    @property
+    def accel_bias_covariance(self) -> np.ndarray:
+        """Including, until GNSS has observed it, the bias prior on x and y (see
+        ``FusionConfig.unaided_accel_bias_sigma``)."""
+        P = self._P[IBA:IBA + 3, IBA:IBA + 3].copy()
+        P[0, 0] += self._unaided_bias_variance
+        P[1, 1] += self._unaided_bias_variance
+        return P
+
+    @property
+    def road_grade_variance(self) -> float:
+        """Variance of ``road_grade`` [rad^2] from the attitude covariance.
+
+        grade = asin(e_z . R_wb e_x);  with R_wb,true = (I - S(eps_b)) R_wb,hat,
+        d(grade) = -(eps_b,x b_y - eps_b,y b_x) / cos(grade),  b = R_wb,hat e_x.
+        """
+        b = self.rotation_matrix[:, 0]
+        cg = max(math.sqrt(max(0.0, 1.0 - b[2] * b[2])), 1e-6)
+        j = np.array([-b[1], b[0], 0.0]) / cg
+        j = j @ self._base_attitude_jacobian()
+        # Without GNSS the grade is the kinematic one, (f_x - b_x - dv/dt) / g: the unobserved
+        # bias is in it one to one.
+        return float(j @ self._P @ j) + self._unaided_bias_variance / (self.config.gravity * cg) ** 2
+
+    @property
+    def pitch_variance(self) -> float:
+        """Variance of REP-103 pitch (= variance of road_grade, pitch = -grade)."""
+        return self.road_grade_variance
+
+    def compensated_imu(self, specific_force, angular_rate) -> tuple:
+        """Bias-removed (specific force, angular rate), Eq. (22), rotated into base_link."""
+        return (self._Rm @ (np.asarray(specific_force, float) - self._ba),
+                self._Rm @ (np.asarray(angular_rate, float) - self._bg))
