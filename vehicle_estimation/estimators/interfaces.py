@@ -9,7 +9,7 @@ protocols, so it never branches on the method's name; what a method adds to
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Protocol, runtime_checkable
+from typing import Any, Callable, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -30,10 +30,13 @@ class MassEstimator(Protocol):
     @property
     def needs_heading(self) -> bool: ...
 
-    def step(self, t: float, vx: float, ax: float, slope: float, **signals: float) -> bool:
-        """One sample (or window): speed [m/s], dv/dt [m/s^2], grade [rad]; the drive and
-        brake signals by name (drive_force, engine_torque, engine_speed, engine_load, gear,
-        brake_torque, heading, regressor_bias_variance, regressor_bias_correlation_s)."""
+    #: ``step(t, vx, ax, slope, **signals) -> bool``: one sample (or window): speed [m/s],
+    #: dv/dt [m/s^2], grade [rad], and the drive and brake signals by name (drive_force,
+    #: engine_torque, engine_speed, engine_load, gear, brake_torque; heading and the
+    #: regressor's bias variance and correlation for the methods that take them). Each method
+    #: names the signals it reads, so the signature is not fixed here.
+    @property
+    def step(self) -> Callable[..., bool]: ...
 
     @property
     def mass(self) -> float:
