@@ -3,8 +3,10 @@ with gross measurement errors.
 
 Usage::
 
-    python -m vehicle_estimation.experiments.paper002_aoukf_gabpnn [--out DIR] [--scenarios paper002_dlc,paper002_mixed]
-                                                [--duration S] [--weights FILE] [--no-plots]
+    vehicle-estimation paper002 [--out DIR] [--scenarios paper002_dlc,paper002_mixed]
+                                [--duration S] [--weights FILE] [--no-plots]
+
+(or ``python -m vehicle_estimation.experiments.paper002_aoukf_gabpnn`` with the same options)
 
 For every scenario (default: the ISO 3888-2 double lane changes ``paper002_dlc`` and the
 300 s mixed drive ``paper002_mixed``, both with the isolated spikes and speckled bursts of
@@ -298,8 +300,6 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="python -m vehicle_estimation.experiments.paper002_aoukf_gabpnn",
-                                     description=__doc__.split("\n\n")[0])
-    add_arguments(parser)
-    sys.exit(main(parser.parse_args()))
+if __name__ == "__main__":   # the same as `vehicle-estimation paper002`
+    from vehicle_estimation.cli import main as cli_main
+    sys.exit(cli_main(["paper002", *sys.argv[1:]]))
