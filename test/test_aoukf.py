@@ -9,8 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from vehicle_estimation.estimators.state.aoukf import (AOUKFConfig, AntiOutlierUKF, ExtendedKalmanFilter, ThreeDofModel,
-                                           UnscentedKalmanFilter, VehicleStateAOUKF, sqrt_psd)
+from vehicle_estimation.estimators.common.sigma_points import sqrt_psd
+from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
+from vehicle_estimation.estimators.state.aoukf_filters import AntiOutlierUKF, ExtendedKalmanFilter, UnscentedKalmanFilter
+from vehicle_estimation.estimators.state.three_dof_model import ThreeDofModel
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.sim.scenario import load_vehicle
 

@@ -522,6 +522,30 @@ def test_vehicle_state_filters_random_inputs(kind, steps):
             assert_covariance(est.measurement_noise, "E[R]")
 
 
+def test_every_registered_state_filter_is_a_state_estimator():
+    """What the state node relies on: each filter of the registry builds a core with the
+    StateEstimator members, whose status() is text for /diagnostics."""
+    from vehicle_estimation.estimators.interfaces import StateEstimator
+    from vehicle_estimation.estimators.registry import STATE_FILTERS, StateSettings, with_state_settings
+
+    settings = StateSettings(p0_diag=(10.0,) * 5, q_diag=(1e-3,) * 5, r_diag=(4e-2, 4e-2, 6e-5),
+                             initial_vx=0.0, init_vx_from_wheel_speeds=True)
+    expected_keys = {"ckf": set(), "vbackf": {"learnt R diagonal", "VB fallbacks"},
+                     "aoukf": {"aoukf updates", "aoukf speckled_replaced", "GA-BPNN correction"}}
+    assert set(STATE_FILTERS) == set(expected_keys)
+    for name, method in STATE_FILTERS.items():
+        config = method.config_type()
+        if config is not None:
+            config, shared = with_state_settings(config, settings)
+            assert all(getattr(config, field) == getattr(settings, field) for field in shared)
+        core = method.build(SEDAN, config, settings, None)
+        assert isinstance(core, StateEstimator), name
+        core.step(0.0, VehicleInputs(0.0, np.full(4, 20.0 / SEDAN.wheel_radius)), [0.0, 0.0, 0.0])
+        status = core.status()
+        assert expected_keys[name] <= set(status), (name, status)
+        assert all(isinstance(k, str) and isinstance(v, str) for k, v in status.items())
+
+
 # ------------------------------------------------------------------ mass estimators (papers 003, 004, 000)
 mass_step = st.tuples(
     dt_strategy(0.05, 2.0),

@@ -9,10 +9,11 @@ added here is offered everywhere at once.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from typing import Any, Callable, Mapping
 
 from vehicle_estimation.contract.vehicle import VehicleParams
-from vehicle_estimation.estimators.interfaces import MassEstimator
+from vehicle_estimation.estimators.interfaces import MassEstimator, StateEstimator
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,22 +27,24 @@ class Method:
     build: Callable[..., Any]
 
 
+def lazy(path: str) -> Callable[..., Any]:
+    """``"module:Name"`` of :mod:`vehicle_estimation.estimators`, imported at the first call
+    and called with its arguments: a node loads only the method it runs (TA-AEKF's torch
+    stays out of a node that runs RLS)."""
+    module, name = path.split(":")
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return getattr(importlib.import_module(f"vehicle_estimation.estimators.{module}"), name)(*args, **kwargs)
+
+    return call
+
+
 def lookup(methods: Mapping[str, Method], name: str, kind: str) -> Method:
     """``methods[name]``, or ``ValueError`` listing the methods of this kind."""
     try:
         return methods[name]
     except KeyError:
         raise ValueError(f"unknown {kind} method {name!r}; one of {sorted(methods)}") from None
-
-
-def _rls(vehicle: VehicleParams, config: Any) -> MassEstimator:
-    from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator
-    return LongitudinalMassEstimator(vehicle, config)
-
-
-def _ffrls(vehicle: VehicleParams, config: Any) -> MassEstimator:
-    from vehicle_estimation.estimators.mass.mass_ffrls import FFRLSMassEstimator
-    return FFRLSMassEstimator(vehicle, config)
 
 
 def _ta_aekf(vehicle: VehicleParams, config: Any) -> MassEstimator:
@@ -57,28 +60,13 @@ def _ta_aekf(vehicle: VehicleParams, config: Any) -> MassEstimator:
         raise ValueError(f"parameter 'ta_aekf.model_path': {exc}") from exc
 
 
-def _mass_rls_config() -> Any:
-    from vehicle_estimation.estimators.mass.mass_rls import MassRLSConfig
-    return MassRLSConfig()
-
-
-def _mass_ffrls_config() -> Any:
-    from vehicle_estimation.estimators.mass.mass_ffrls import FFRLSMassConfig
-    return FFRLSMassConfig()
-
-
-def _ta_aekf_config() -> Any:
-    from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig
-    return TaAekfConfig()
-
-
 MASS_METHODS: dict[str, Method] = {
     "ffrls": Method("ffrls", "paper 004 Sec. 6: forgetting-factor RLS with braking samples and "
-                    "the threshold judgment (Eqs. 28-31)", "ffrls", _mass_ffrls_config, _ffrls),
+                    "the threshold judgment (Eqs. 28-31)", "ffrls", lazy("mass.mass_ffrls:FFRLSMassConfig"), lazy("mass.mass_ffrls:FFRLSMassEstimator")),
     "rls": Method("rls", "paper 003 Secs. 2-4: RLS with forgetting on driving samples, gear "
-                  "prediction and the OBD-II torque map (Eqs. 4-11, 49)", "mass", _mass_rls_config, _rls),
+                  "prediction and the OBD-II torque map (Eqs. 4-11, 49)", "mass", lazy("mass.mass_rls:MassRLSConfig"), lazy("mass.mass_rls:LongitudinalMassEstimator")),
     "ta_aekf": Method("ta_aekf", "paper 000: adaptive EKF on [v, 1/m] aided by a transformer's "
-                      "mass, weighted by the confidence level tau (Alg. 1)", "ta_aekf", _ta_aekf_config, _ta_aekf),
+                      "mass, weighted by the confidence level tau (Alg. 1)", "ta_aekf", lazy("mass.ta_aekf:TaAekfConfig"), _ta_aekf),
 }
 
 
@@ -120,26 +108,6 @@ def _auto_slope(vehicle: VehicleParams, config: Any, configure: Configure = _con
         auto=config)
 
 
-def _auto_slope_config() -> Any:
-    from vehicle_estimation.estimators.slope.auto import AutoSlopeConfig
-    return AutoSlopeConfig()
-
-
-def _classical_config() -> Any:
-    from vehicle_estimation.estimators.slope.observers import ClassicalSlopeConfig
-    return ClassicalSlopeConfig()
-
-
-def _cubic_prediction_config() -> Any:
-    from vehicle_estimation.estimators.slope.cubic_prediction import CubicPredictionSlopeConfig
-    return CubicPredictionSlopeConfig()
-
-
-def _fusion_pitch_config() -> Any:
-    from vehicle_estimation.estimators.slope.pitch_grade import PitchGradeConfig
-    return PitchGradeConfig()
-
-
 #: Each builds a :class:`~vehicle_estimation.estimators.slope.road_slope.RoadSlopeEstimator`
 #: (a :class:`~vehicle_estimation.estimators.interfaces.SlopeEstimator`) as
 #: ``build(vehicle, config, configure)``; ``auto`` combines two of the others and asks
@@ -147,12 +115,82 @@ def _fusion_pitch_config() -> Any:
 #: default the defaults are used).
 SLOPE_METHODS: dict[str, Method] = {
     "auto": Method("auto", "fusion_pitch while the fusion grade is fresh and converged, else "
-                   "cubic_prediction, without a jump at a switch", "auto", _auto_slope_config, _auto_slope),
+                   "cubic_prediction, without a jump at a switch", "auto", lazy("slope.auto:AutoSlopeConfig"), _auto_slope),
     "classical": Method("classical", "paper 004 Eqs. 32-33: the contrasted observer on the theta' = 0 "
-                        "slope model", "classical", _classical_config, _classical),
+                        "slope model", "classical", lazy("slope.observers:ClassicalSlopeConfig"), _classical),
     "cubic_prediction": Method("cubic_prediction", "paper 004 Sec. 5: the slope prediction model "
                                "(Eqs. 15-20) with the cubic observer (Eqs. 21-27)", "cubic_prediction",
-                               _cubic_prediction_config, _cubic_prediction),
+                               lazy("slope.cubic_prediction:CubicPredictionSlopeConfig"), _cubic_prediction),
     "fusion_pitch": Method("fusion_pitch", "paper 003 Sec. 7.2: the grade from the fusion's pitch, "
-                           "LWMA-smoothed", "fusion_pitch", _fusion_pitch_config, _fusion_pitch),
+                           "LWMA-smoothed", "fusion_pitch", lazy("slope.pitch_grade:PitchGradeConfig"), _fusion_pitch),
+}
+
+
+# -- vehicle state ------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class StateSettings:
+    """The vehicle-state node's own tuning: the diagonals of ``P0``, ``Q`` (per 0.01 s step)
+    and ``R`` of the paper-004 filters, and how vx starts, for every filter (a filter config
+    with the :data:`NODE_STATE_FIELDS` takes them from here: :func:`with_state_settings`)."""
+
+    p0_diag: tuple[float, ...]
+    q_diag: tuple[float, ...]
+    r_diag: tuple[float, ...]
+    initial_vx: float
+    init_vx_from_wheel_speeds: bool
+
+
+#: The fields of :class:`StateSettings` that every filter takes from the node.
+NODE_STATE_FIELDS = ("initial_vx", "init_vx_from_wheel_speeds")
+
+
+@dataclasses.dataclass(frozen=True)
+class StateFilter(Method):
+    """A vehicle-state filter: ``build(vehicle, config, settings, correction)`` returns a
+    :class:`~vehicle_estimation.estimators.interfaces.StateEstimator`. ``config`` is None for
+    a filter without a config of its own (``config_type`` returns None); ``correction`` is
+    the GA-BPNN output correction of paper 002 Eq. 5, for the filters with
+    ``output_correction`` (node parameter ``aoukf_correction``)."""
+
+    output_correction: bool = False
+
+
+def with_state_settings(config: Any, settings: StateSettings) -> tuple[Any, tuple[str, ...]]:
+    """``config`` with its :data:`NODE_STATE_FIELDS` taken from ``settings``, and the names of
+    those fields (the node declares them once, not under the filter's prefix)."""
+    names = {f.name for f in dataclasses.fields(config)}
+    shared = tuple(name for name in NODE_STATE_FIELDS if name in names)
+    return dataclasses.replace(config, **{name: getattr(settings, name) for name in shared}), shared
+
+
+def _paper004_config(settings: StateSettings) -> Any:
+    from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
+    return VehicleStateConfig.from_diagonals(settings.p0_diag, settings.q_diag, settings.r_diag,
+                                             initial_vx=settings.initial_vx,
+                                             init_vx_from_wheel_speeds=settings.init_vx_from_wheel_speeds)
+
+
+def _ckf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:
+    from vehicle_estimation.estimators.state.ckf import VehicleStateCKF
+    return VehicleStateCKF(vehicle, _paper004_config(settings))
+
+
+def _vbackf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:
+    from vehicle_estimation.estimators.state.vbackf import VehicleStateVBACKF
+    return VehicleStateVBACKF(vehicle, _paper004_config(settings), config)
+
+
+def _aoukf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:
+    from vehicle_estimation.estimators.state.aoukf import VehicleStateAOUKF
+    return VehicleStateAOUKF(vehicle, config, correction)
+
+
+STATE_FILTERS: dict[str, StateFilter] = {
+    "ckf": StateFilter("ckf", "paper 004 Sec. 7: the plain cubature Kalman filter on the 4-wheel Dugoff "
+                       "model (Eqs. 1-9), the paper's contrast", "", lambda: None, _ckf),
+    "vbackf": StateFilter("vbackf", "paper 004 Sec. 4: the variational Bayesian adaptive CKF, the "
+                          "measurement noise learnt online (Eqs. 10-13)", "vbackf", lazy("state.vbackf:VBConfig"), _vbackf),
+    "aoukf": StateFilter("aoukf", "paper 002: the adaptive anti-outlier UKF on the 3-DOF Magic-Formula "
+                         "model (Sec. 3.3, Eqs. 6-7) with the GA-BPNN output correction (Eq. 5)",
+                         "aoukf", lazy("state.aoukf:AOUKFConfig"), _aoukf, output_correction=True),
 }

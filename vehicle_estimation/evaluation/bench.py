@@ -174,12 +174,9 @@ def bench_aoukf(d: DriveArrays) -> list[StepTiming]:
     """The vehicle-state AO-UKF of paper 002 (plain UKF, anti-outlier, + GA-BPNN), and our
     generic UKF against filterpy's on the same 3-DOF model, data and tuning (predict + update
     of [ay, r]). filterpy calls the model once per sigma point; ours once per step on all 7."""
-    from vehicle_estimation.estimators.state.aoukf import (
-        AOUKFConfig,
-        ThreeDofModel,
-        UnscentedKalmanFilter,
-        VehicleStateAOUKF,
-    )
+    from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
+    from vehicle_estimation.estimators.state.aoukf_filters import UnscentedKalmanFilter
+    from vehicle_estimation.estimators.state.three_dof_model import ThreeDofModel
     from vehicle_estimation.estimators.state.gabpnn import (
         default_weights_path,
         load_correction,

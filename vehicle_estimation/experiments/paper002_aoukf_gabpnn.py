@@ -3,8 +3,10 @@ with gross measurement errors.
 
 Usage::
 
-    python -m vehicle_estimation.experiments.paper002_aoukf_gabpnn [--out DIR] [--scenarios paper002_dlc,paper002_mixed]
-                                                [--duration S] [--weights FILE] [--no-plots]
+    vehicle-estimation paper002 [--out DIR] [--scenarios paper002_dlc,paper002_mixed]
+                                [--duration S] [--weights FILE] [--no-plots]
+
+(or ``python -m vehicle_estimation.experiments.paper002_aoukf_gabpnn`` with the same options)
 
 For every scenario (default: the ISO 3888-2 double lane changes ``paper002_dlc`` and the
 300 s mixed drive ``paper002_mixed``, both with the isolated spikes and speckled bursts of

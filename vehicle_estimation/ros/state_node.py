@@ -15,6 +15,9 @@ Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14, ``aoukf`` on the paper-002 3-D
   (``aoukf.filter`` ``ukf`` / ``ekf`` gives the paper's contrasts). Gross errors (spikes,
   bursts, a frozen sensor) are down-weighted or replaced; ``/diagnostics`` counts them.
 
+The filter is built from :data:`~vehicle_estimation.estimators.registry.STATE_FILTERS`; what it
+adds to ``/diagnostics`` comes from its ``status()``.
+
 Shared tuning of ``ckf``/``vbackf`` (Sec. 7.1 defaults): ``p0_diag``, ``q_diag`` (per ``tau`` =
 0.01 s) and ``r_diag`` (the initial R for ``vbackf``).
 
@@ -48,6 +51,7 @@ Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
@@ -56,14 +60,19 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from vehicle_estimation.contract import topics
-from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
-from vehicle_estimation.estimators.state.ckf import VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.estimators.interfaces import StateEstimator
+from vehicle_estimation.estimators.registry import (
+    STATE_FILTERS,
+    StateSettings,
+    lookup,
+    with_state_settings,
+)
+from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
 from vehicle_estimation.estimators.state.gabpnn import (
     BPCorrection,
     default_weights_path,
     load_correction,
 )
-from vehicle_estimation.estimators.state.vbackf import VBConfig, VehicleStateVBACKF
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED,
@@ -85,7 +94,6 @@ from vehicle_estimation.ros.runtime.upstream import (
     is_fresh,
 )
 
-FILTERS = ("ckf", "vbackf", "aoukf")
 #: Where vx comes from, for /diagnostics ("vx source").
 VX_FROM_WHEELS = "wheel speeds"
 VX_FROM_SPEED = "vehicle/speed (fallback: no wheel speeds)"
@@ -104,7 +112,8 @@ class StateNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("vehicle_state", **node_kwargs)
         self.vehicle = self.declare_vehicle()
-        self.filter_name = self.declare_str("filter", "vbackf", "Vehicle-state filter", FILTERS)
+        self.filter_name = self.declare_str("filter", "vbackf", "Vehicle-state filter", tuple(STATE_FILTERS))
+        self.method = lookup(STATE_FILTERS, self.filter_name, "vehicle-state filter")
         self.rate = self.declare_float("publish_rate_hz", 100.0, "Output rate [Hz]", 0.1, 1000.0)
         self.filter_rate = self.declare_float(
             "filter_rate_hz", 100.0,
@@ -141,15 +150,11 @@ class StateNode(EstimatorNode):
         self.speed_fallback_std = self.declare_float(
             "speed_fallback_std", 0.3,
             "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
-        self.vb_config = (self.declare_config("vbackf", VBConfig())
-                          if self.filter_name == "vbackf" else None)
-        self.aoukf_config: AOUKFConfig | None = None
+        self.settings = StateSettings(tuple(self.p0_diag), tuple(self.q_diag), tuple(self.r_diag),
+                                      self.initial_vx, self.init_from_wheels)
+        self.filter_config = self._declare_filter_config()
         self.correction: BPCorrection | None = None
-        if self.filter_name == "aoukf":
-            # initial_vx / init_vx_from_wheel_speeds are the node's, for every filter.
-            self.aoukf_config = self.declare_config(
-                "aoukf", AOUKFConfig(initial_vx=self.initial_vx, init_vx_from_wheel_speeds=self.init_from_wheels),
-                exclude=("initial_vx", "init_vx_from_wheel_speeds"))
+        if self.method.output_correction:
             self.correction = self._load_correction(self.declare_str(
                 "aoukf_correction", "auto",
                 "GA-BPNN output correction (paper 002 Eq. 5) for filter aoukf: 'auto' = the "
@@ -219,25 +224,20 @@ class StateNode(EstimatorNode):
         except ValueError as exc:
             raise ParameterError(f"parameter 'aoukf_correction': {exc}") from exc
 
-    def _make_core(self) -> VehicleStateCKF | VehicleStateAOUKF:
-        if self.aoukf_config is not None:
-            try:
-                correction = self.correction.fresh() if self.correction is not None else None
-                return VehicleStateAOUKF(self.vehicle, self.aoukf_config, correction)
-            except (TypeError, ValueError) as exc:
-                raise ParameterError(f"filter 'aoukf': {exc}") from exc
-        for name, values, n in (("p0_diag", self.p0_diag, 5), ("q_diag", self.q_diag, 5),
-                                ("r_diag", self.r_diag, 3)):
-            if len(values) != n or not all(math.isfinite(v) and v > 0.0 for v in values):
-                raise ParameterError(f"parameter '{name}' must be {n} positive numbers, got {values}")
+    def _declare_filter_config(self) -> Any:
+        """The filter's own config, declared as ``<config_prefix>.*`` (None for a filter
+        without one); the fields the node declares itself (initial_vx, ...) come from
+        :attr:`settings`."""
+        defaults = self.method.config_type()
+        if defaults is None:
+            return None
+        defaults, shared = with_state_settings(defaults, self.settings)
+        return self.declare_config(self.method.config_prefix, defaults, exclude=shared)
+
+    def _make_core(self) -> StateEstimator:
+        correction = self.correction.fresh() if self.correction is not None else None
         try:
-            config = VehicleStateConfig(P0=np.diag(self.p0_diag), Q=np.diag(self.q_diag),
-                                        R=np.diag(self.r_diag), initial_vx=self.initial_vx,
-                                        init_vx_from_wheel_speeds=self.init_from_wheels)
-            config.validate()
-            if self.filter_name == "vbackf":
-                return VehicleStateVBACKF(self.vehicle, config, self.vb_config)
-            return VehicleStateCKF(self.vehicle, config)
+            return self.method.build(self.vehicle, self.filter_config, self.settings, correction)
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"filter '{self.filter_name}': {exc}") from exc
 
@@ -410,14 +410,7 @@ class StateNode(EstimatorNode):
 
     def status_values(self) -> dict[str, str]:
         x = self.core.x
-        extra = {}
-        if self.filter_name == "vbackf":
-            extra = {"learnt R diagonal": np.array2string(np.diag(self.core.measurement_noise), precision=6),
-                     "VB fallbacks": str(self.core.vb_fallbacks)}
-        elif isinstance(self.core, VehicleStateAOUKF):
-            # Measurements the anti-outlier step down-weighted, ignored or replaced (Sec. 3.3).
-            extra = {f"aoukf {k}": str(v) for k, v in self.core.counters.items()}
-            extra["GA-BPNN correction"] = "on" if self.core.correction is not None else "off"
+        extra = dict(self.core.status())
         extra["filter re-initialisations"] = str(self.core.reinitialisations)
         extra["vx source"] = self.vx_source
         extra["roll compensation"] = self.roll_source

@@ -71,14 +71,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from typing import Callable, Optional
 
 import numpy as np
 
-from vehicle_estimation.estimators.state.ckf import (
-    CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig, _as_matrix)
+from vehicle_estimation.contract.settings import check_settings, setting
 from vehicle_estimation.contract.vehicle import VehicleParams
+from vehicle_estimation.estimators.common.sigma_points import as_matrix, is_positive_definite
+from vehicle_estimation.estimators.state.ckf import CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 
 __all__ = ["VBConfig", "VariationalBayesCKF", "VehicleStateVBACKF"]
 
@@ -87,20 +88,6 @@ R_ESTIMATES = ("mean", "vb")
 
 class _NumericalFailure(Exception):
     """A variational iteration produced a non-finite or non-positive-definite matrix."""
-
-
-def _is_pd(M: np.ndarray) -> bool:
-    if not np.all(np.isfinite(M)):
-        return False
-    try:
-        np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        return False
-    return True
-
-
-def _finite_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 @dataclasses.dataclass
@@ -112,45 +99,35 @@ class VBConfig:
     parameters; the defaults are those recommended by the paper's ref. [30] (Huang et al.
     2018), which is where the paper points for ``N``.
 
-    Attributes:
-        rho: forgetting factor ``rho`` in (0, 1] of the ``nu``/``V`` prediction, per
-            ``nominal_dt`` (``1 - exp(-4)`` = 0.9817, ref. [30]). ``1`` = constant noise.
-        iterations: number ``N`` of variational iterations per update (10, ref. [30]).
-        prior_weight: ``nu_0 - d - 1``, the number of pseudo-measurements the initial
-            ``R_0`` is worth; ``V_0 = prior_weight R_0`` so that ``E[R_0] = R_0`` (Eq. 11).
-            3 as ref. [30]'s reference code (``tau = 3`` there). Large = prior
-            concentrated at ``R_0``.
-        nominal_dt: time step [s] that ``rho`` refers to; ``None`` = ``rho`` per
-            :meth:`~VariationalBayesCKF.predict` call. (The vehicle estimator fills in the
-            paper's ``tau`` = 0.01 s when ``None``.)
-        r_estimate: ``"mean"`` (Eq. 11, ``V/(nu-d-1)``, paper) or ``"vb"``
-            (``(E[R^-1])^-1 = V/nu``, exact mean-field) as the ``R`` used in the gain.
-        tolerance: stop the iterations early when the relative change of ``V`` is below
-            this (0 = always ``iterations``, as the paper).
+    ``nominal_dt`` is not a ROS parameter: ``None`` means ``rho`` per
+    :meth:`~VariationalBayesCKF.predict` call, and the vehicle estimator fills in the
+    paper's ``tau`` (its ``VehicleStateConfig.nominal_dt``, 0.01 s) when it is ``None``.
     """
 
-    rho: float = 1.0 - math.exp(-4.0)
-    iterations: int = 10
-    prior_weight: float = 3.0
+    rho: float = setting(
+        1.0 - math.exp(-4.0),
+        "Forgetting factor rho of the nu/V prediction, per nominal_dt (1 - exp(-4) = 0.9817, "
+        "ref. [30]); 1 = constant noise [-]", low=0.0, high=1.0, low_open=True)
+    iterations: int = setting(10, "Number N of variational iterations per update (10, ref. [30])", low=1)
+    prior_weight: float = setting(
+        3.0, "nu_0 - d - 1, the number of pseudo-measurements the initial R_0 is worth; V_0 = "
+        "prior_weight R_0 so that E[R_0] = R_0 (Eq. 11). 3 as ref. [30]'s reference code. Large = "
+        "prior concentrated at R_0 [-]", low=0.0, low_open=True)
     nominal_dt: Optional[float] = None
-    r_estimate: str = "mean"
-    tolerance: float = 0.0
+    r_estimate: str = setting(
+        "mean", "The R used in the gain: 'mean' (Eq. 11, V/(nu-d-1), paper) or 'vb' "
+        "((E[R^-1])^-1 = V/nu, exact mean-field)", choices=R_ESTIMATES)
+    tolerance: float = setting(
+        0.0, "Stop the iterations early when the relative change of V is below this (0 = always "
+        "`iterations`, as the paper) [-]", low=0.0)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
-        if not (_finite_number(self.rho) and 0.0 < self.rho <= 1.0):
-            raise ValueError(f"rho must be in (0, 1], got {self.rho!r}")
-        if not (isinstance(self.iterations, numbers.Integral) and not isinstance(self.iterations, bool)
-                and self.iterations >= 1):
-            raise ValueError(f"iterations must be an integer >= 1, got {self.iterations!r}")
-        if not (_finite_number(self.prior_weight) and self.prior_weight > 0.0):
-            raise ValueError(f"prior_weight must be a finite positive number, got {self.prior_weight!r}")
-        if self.nominal_dt is not None and not (_finite_number(self.nominal_dt) and self.nominal_dt > 0.0):
+        check_settings(self)
+        if self.nominal_dt is not None and not (
+                isinstance(self.nominal_dt, (int, float)) and not isinstance(self.nominal_dt, bool)
+                and math.isfinite(self.nominal_dt) and self.nominal_dt > 0.0):
             raise ValueError(f"nominal_dt must be None or a finite positive number, got {self.nominal_dt!r}")
-        if self.r_estimate not in R_ESTIMATES:
-            raise ValueError(f"r_estimate must be one of {R_ESTIMATES}, got {self.r_estimate!r}")
-        if not (_finite_number(self.tolerance) and self.tolerance >= 0.0):
-            raise ValueError(f"tolerance must be a finite number >= 0, got {self.tolerance!r}")
 
 
 class VariationalBayesCKF(CubatureKalmanFilter):
@@ -178,7 +155,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         super().__init__(f, h, Q, R, x0, P0, vectorized=vectorized)
         self.vb = VBConfig() if vb is None else vb
         self.vb.validate()
-        if not (_is_pd(self.R) and np.allclose(self.R, self.R.T)):
+        if not (is_positive_definite(self.R) and np.allclose(self.R, self.R.T)):
             raise ValueError("R must be a finite, symmetric positive-definite matrix")
         self.R0 = self.R.copy()
         self.vb_fallbacks = 0
@@ -193,8 +170,8 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         ``R0`` (default: the constructor's ``R``) becomes the new prior mean.
         """
         if R0 is not None:
-            R0 = _as_matrix(R0, self.m, "R0")
-            if not _is_pd(R0):
+            R0 = as_matrix(R0, self.m, "R0")
+            if not is_positive_definite(R0):
                 raise ValueError("R0 must be finite and positive definite")
             self.R0 = 0.5 * (R0 + R0.T)
         self._dof = self.m + 1.0 + self.vb.prior_weight
@@ -222,20 +199,21 @@ class VariationalBayesCKF(CubatureKalmanFilter):
     @property
     def R_mean(self) -> np.ndarray:
         """``E[R] = V / (nu - d - 1)`` (Eq. 11): the current noise estimate."""
-        return self._scale / (self._dof - self.m - 1.0)
+        return self._point_estimate(self._dof, self._scale, "mean")
 
     @property
     def R_vb(self) -> np.ndarray:
         """``(E[R^-1])^-1 = V / nu``, the mean-field VB point estimate."""
-        return self._scale / self._dof
+        return self._point_estimate(self._dof, self._scale, "vb")
 
     @property
     def R_estimate(self) -> np.ndarray:
         """The ``R`` the gain uses, by ``VBConfig.r_estimate`` (default: Eq. 11)."""
-        return self._point_estimate(self._dof, self._scale)
+        return self._point_estimate(self._dof, self._scale, self.vb.r_estimate)
 
-    def _point_estimate(self, dof: float, scale: np.ndarray) -> np.ndarray:
-        if self.vb.r_estimate == "mean":
+    def _point_estimate(self, dof: float, scale: np.ndarray, kind: str) -> np.ndarray:
+        """``R`` of ``IW(R; dof, scale)``: its mean (``kind`` "mean") or ``(E[R^-1])^-1`` ("vb")."""
+        if kind == "mean":
             return scale / (dof - self.m - 1.0)
         return scale / dof
 
@@ -257,16 +235,19 @@ class VariationalBayesCKF(CubatureKalmanFilter):
     # -- variational measurement update ---------------------------------------------------
     def _residual_second_moment(self, z: np.ndarray, x: np.ndarray, P: np.ndarray, args) -> np.ndarray:
         """``B = E_N(x,P)[(z - h(x))(z - h(x))^T]`` by the cubature rule ("adjustment matrix")."""
-        Z = self._apply(self.h, self.cubature_points(x, P), *args)
+        Z = self._apply(self.h, self.sigma_points(x, P), *args)
         e = z - Z
-        B = self._w * (e.T @ e)
+        B = self.points.covariance(e, e)
         return 0.5 * (B + B.T)
 
-    def update(self, z, *args, R: Optional[np.ndarray] = None) -> np.ndarray:
+    def update(self, z, *args, R: Optional[np.ndarray] = None, select=None) -> np.ndarray:
         """Variational measurement update with ``z``; returns the innovation ``z - z_hat``.
 
-        ``R=`` given: plain CKF update with that fixed ``R``, noise statistics untouched.
+        ``R=`` given: plain CKF update with that fixed ``R``, noise statistics untouched. The
+        noise statistics are those of every channel: ``select`` must be None.
         """
+        if select is not None:
+            raise ValueError("the variational update takes every measurement channel (select=None)")
         z = np.asarray(z, dtype=float).reshape(self.m)
         if not np.all(np.isfinite(z)):
             self.rejected_measurements += 1
@@ -290,7 +271,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         try:
             # V_k|k-1 PD and B PSD (by construction) make every V^(i+1), R^(i+1) PD: check the
             # prediction once, then only that B is finite and P_zz factorises.
-            if not (math.isfinite(dof_pred) and _is_pd(scale_pred)):
+            if not (math.isfinite(dof_pred) and is_positive_definite(scale_pred)):
                 raise _NumericalFailure
             with np.errstate(all="ignore"):
                 for i in range(self.vb.iterations):
@@ -298,9 +279,9 @@ class VariationalBayesCKF(CubatureKalmanFilter):
                     if not np.all(np.isfinite(B)):
                         raise _NumericalFailure
                     scale = scale_pred + B
-                    R_i = self._point_estimate(dof, scale)
+                    R_i = self._point_estimate(dof, scale, self.vb.r_estimate)
                     Pzz = Czz + R_i
-                    if not _is_pd(Pzz):
+                    if not is_positive_definite(Pzz):
                         raise _NumericalFailure
                     self._x, self._P = x_pred, P_pred
                     self.correct(innovation, Pzz, Pxz)
@@ -322,12 +303,12 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         self.vb_fallbacks += 1
         self.last_iterations = 0
         self._dof, self._scale = dof_pred, scale_pred
-        if not (math.isfinite(dof_pred) and _is_pd(scale_pred)):
+        if not (math.isfinite(dof_pred) and is_positive_definite(scale_pred)):
             self.reset_noise_statistics()
         self._x, self._P = x_pred, P_pred
         R = self.R_estimate
         with np.errstate(all="ignore"):
-            if not _is_pd(Czz + R):
+            if not is_positive_definite(Czz + R):
                 R = self.R0
             try:
                 self.correct(innovation, Czz + R, Pxz)
@@ -368,7 +349,7 @@ class VehicleStateVBACKF(VehicleStateCKF):
         vb: :class:`VBConfig`; ``nominal_dt=None`` (default) takes ``config.nominal_dt``.
     """
 
-    _ckf: VariationalBayesCKF   # built by _make_filter
+    _filter: VariationalBayesCKF   # built by _make_filter
 
     def __init__(self, params: VehicleParams, config: Optional[VehicleStateConfig] = None,
                  vb: Optional[VBConfig] = None):
@@ -387,24 +368,25 @@ class VehicleStateVBACKF(VehicleStateCKF):
         cfg = self.config
         return VariationalBayesCKF(f, h, cfg.Q, cfg.R, self._x0(None), cfg.P0, vb=vb)
 
-    def step(self, t: float, inputs, z) -> bool:
-        """As :meth:`VehicleStateCKF.step`, with the variational measurement update."""
-        reinitialisations = self.reinitialisations
-        applied = super().step(t, inputs, z)
-        if self.reinitialisations > reinitialisations and self.last_event.endswith("numerical failure"):
-            self._ckf.reset_noise_statistics()
-        return applied
-
-    @property
-    def filter(self) -> VariationalBayesCKF:
-        return self._ckf
+    def _reinitialised_after_failure(self, inputs: VehicleInputs) -> bool:
+        """As the CKF's, and the noise statistics go back to the prior too: a failure may
+        come from them."""
+        if not super()._reinitialised_after_failure(inputs):
+            return False
+        self._filter.reset_noise_statistics()
+        return True
 
     @property
     def measurement_noise(self) -> np.ndarray:
         """Current estimate ``E[R]`` (Eq. 11) of the covariance of ``[ax_imu, ay_imu, r]``."""
-        return self._ckf.R_mean
+        return self._filter.R_mean
 
     @property
     def vb_fallbacks(self) -> int:
         """Updates where the variational iteration failed and the plain CKF was used."""
-        return self._ckf.vb_fallbacks
+        return self._filter.vb_fallbacks
+
+    def status(self) -> dict[str, str]:
+        """The learnt measurement noise (diagonal of ``E[R]``) and the VB fallbacks."""
+        return {"learnt R diagonal": np.array2string(np.diag(self.measurement_noise), precision=6),
+                "VB fallbacks": str(self.vb_fallbacks)}

@@ -465,3 +465,14 @@ def sideslip(x) -> float:
     if abs(vx) < 1e-3:
         return 0.0
     return math.atan(vy / vx)
+
+
+def sideslip_variance(x, P) -> float:
+    """First-order variance of :func:`sideslip` from the ``(vx, vy)`` block of ``P`` [rad^2];
+    ``inf`` where ``vx^2 + vy^2 < 1e-6`` (the angle is undefined there)."""
+    vx, vy = x[0], x[1]
+    s = vx * vx + vy * vy
+    if s < 1e-6:
+        return float("inf")
+    J = np.array([-vy / s, vx / s])
+    return float(J @ P[:2, :2] @ J)

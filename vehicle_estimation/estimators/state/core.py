@@ -1,0 +1,187 @@
+"""What every vehicle-state core shares, whatever its model and filter.
+
+The paper-004 CKF / VB-ACKF (:mod:`.ckf`, :mod:`.vbackf`) and the paper-002 AO-UKF
+(:mod:`.aoukf`) step on IMU samples with the chassis inputs of
+:class:`~vehicle_estimation.estimators.state.vehicle_model.VehicleInputs`, and all of them:
+
+* admit a sample only with a finite stamp that increases, valid inputs and ``z`` of three
+  values (:class:`~vehicle_estimation.estimators.common.guard.StepGuard`);
+* start vx from the mean speed of two wheels times the wheel radius when asked to;
+* re-initialise, and count it, when the moments stop being a valid Gaussian (absurd inputs);
+* take a direct vx measurement (:meth:`VehicleStateCore.update_speed`) where there are no
+  wheel speeds, and an extra vx process noise (:attr:`extra_vx_noise_density`) that the node
+  sets while an input is unknown;
+* report the sideslip of Eq. 14 of paper 004 with its first-order variance.
+
+A core satisfies :class:`~vehicle_estimation.estimators.interfaces.StateEstimator`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from typing import Optional, Sequence
+
+import numpy as np
+
+from vehicle_estimation.contract.vehicle import VehicleParams
+from vehicle_estimation.estimators.common.guard import StepGuard
+from vehicle_estimation.estimators.common.sigma_points import AdditiveNoiseFilter, valid_moments
+from vehicle_estimation.estimators.state import vehicle_model as vm
+from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
+
+
+class VehicleStateCore(StepGuard):
+    """Bookkeeping of a vehicle-state core around its Kalman filter :attr:`filter`.
+
+    A subclass builds ``self._filter`` and implements ``step`` with :meth:`_begin_step`,
+    :meth:`_with_extra_vx_noise` and :meth:`_reinitialised_after_failure`, and
+    :meth:`_vx_after_gap` and :meth:`_correct_speed` (for :meth:`update_speed`).
+
+    Args:
+        params: the vehicle (validated by the subclass, with its config, first).
+        initial_vx: the start speed without wheel speeds [m/s].
+        P0: the initial covariance.
+        speed_wheels: indices of the wheels whose mean speed starts vx.
+        max_gap_s: a stamp gap above which the core re-initialises [s].
+    """
+
+    _filter: AdditiveNoiseFilter
+
+    def __init__(self, params: VehicleParams, initial_vx: float, P0: np.ndarray, speed_wheels: Sequence[int],
+                 max_gap_s: float):
+        self.params = params
+        self._max_gap_s = max_gap_s
+        self._initial_vx = initial_vx
+        self._P0 = P0
+        self._speed_wheels = list(speed_wheels)
+        self.t: Optional[float] = None
+        self.initialised = False
+        self.rejected: Counter = Counter(
+            {"nonfinite_measurement": 0, "invalid_input": 0, "stamp_not_increasing": 0})
+        self.reinitialisations = 0
+        self.last_event = ""
+        self.updates = 0
+        self.speed_updates = 0
+        #: Extra process noise on vx [(m/s^2)^2 s], added as ``density * dt`` per step: the
+        #: owner sets it while an input is unknown (the node: no slope estimate, so the grade's
+        #: g sin(theta) acts on vx as a correlated acceleration error).
+        self.extra_vx_noise_density = 0.0
+
+    # -- helpers -------------------------------------------------------------------------
+    def _x0(self, vx0: Optional[float]) -> np.ndarray:
+        """``[vx0, 0, ...]`` (``vx0`` default: the initial speed)."""
+        x0 = np.zeros(self._P0.shape[0])
+        x0[0] = self._initial_vx if vx0 is None else float(vx0)
+        return x0
+
+    def _vx_from_wheels(self, inputs: VehicleInputs) -> Optional[float]:
+        """Mean speed of the :attr:`_speed_wheels` times the wheel radius; None unless all are finite."""
+        ws = inputs.wheel_speeds[self._speed_wheels]
+        if np.all(np.isfinite(ws)):
+            return float(np.mean(ws) * self.params.wheel_radius)
+        return None
+
+    def _begin_step(self, t, inputs, z) -> Optional[tuple[float, np.ndarray, float]]:
+        """``(t, z, time since the last step)`` if the sample may be used, else None (counted:
+        non-numeric or non-finite ``t``, invalid ``inputs``, ``z`` not 3 values, or a stamp
+        that does not increase). After a gap above ``max_gap_s`` the core is re-initialised
+        (from :meth:`_vx_after_gap`) and the sample is its first."""
+        try:
+            t = float(t)
+            z = np.asarray(z, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            t, z = math.nan, np.empty(0)
+        valid = isinstance(inputs, VehicleInputs) and inputs.is_valid() and z.shape == (3,)
+        dt = self.admit(t, valid)
+        if dt is None:
+            return None
+        if self.t is not None and dt > self._max_gap_s:
+            self.reset(self._vx_after_gap(inputs))
+            self.note_reinitialised(dt)
+        return t, z, dt
+
+    def _vx_now(self) -> Optional[float]:
+        """The current vx estimate of the filter, None if it is not finite."""
+        vx = float(self._filter.x[0])
+        return vx if math.isfinite(vx) else None
+
+    def _vx_after_gap(self, inputs: VehicleInputs) -> Optional[float]:
+        """The vx a re-initialisation after a stamp gap starts from (None: initial)."""
+        raise NotImplementedError
+
+    def _with_extra_vx_noise(self, Q: np.ndarray, dt: float) -> np.ndarray:
+        """``Q`` plus :attr:`extra_vx_noise_density` ``* dt`` on vx (a copy when that is added)."""
+        if self.extra_vx_noise_density > 0.0:
+            Q = np.array(Q, dtype=float)
+            Q[0, 0] += self.extra_vx_noise_density * dt
+        return Q
+
+    def _vx_after_failure(self, inputs: VehicleInputs) -> Optional[float]:
+        """The vx a re-initialisation after a numerical failure starts from (None: initial)."""
+        return None
+
+    def _reinitialised_after_failure(self, inputs: VehicleInputs) -> bool:
+        """Re-initialise (and count it) when the mean is not finite or the covariance is no
+        longer positive definite (absurd inputs, rounding); True if it did."""
+        if valid_moments(self._filter._x, self._filter._P):
+            return False
+        self.reset(self._vx_after_failure(inputs))
+        self.reinitialisations += 1
+        self.last_event = "re-initialised after numerical failure"
+        return True
+
+    def reset(self, vx0: Optional[float] = None) -> None:
+        """Back to ``x0 = [vx0, 0, ...]`` (``vx0`` default: the initial speed), ``P0``; forget the stamp."""
+        self._filter.reset(self._x0(vx0), self._P0)
+        self.t = None
+        self.initialised = False
+
+    # -- speed measurement ---------------------------------------------------------------
+    def update_speed(self, vx: float, variance: float) -> bool:
+        """Update with a direct measurement of the longitudinal speed ``vx`` [m/s].
+
+        Not in papers 004 and 002, whose models observe vx through the wheel speeds only:
+        without them (a car whose bus reports only the vehicle speed, a log without wheel
+        speeds) vx would be dead-reckoned from the accelerometer and drift with its bias. The
+        measurement is linear (``H = [1, 0, ...]``), so the exact Kalman update on the
+        current moments. Returns False (nothing changes) for a non-finite value or
+        variance <= 0, or before the filter has started.
+        """
+        vx, variance = float(vx), float(variance)
+        if not (self.initialised and math.isfinite(vx) and math.isfinite(variance) and variance > 0.0):
+            return False
+        self._correct_speed(vx, variance)
+        self.speed_updates += 1
+        return True
+
+    def _correct_speed(self, vx: float, variance: float) -> None:
+        raise NotImplementedError
+
+    # -- outputs -------------------------------------------------------------------------
+    @property
+    def filter(self) -> AdditiveNoiseFilter:
+        """The Kalman filter the core runs."""
+        return self._filter
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._filter.x
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._filter.P
+
+    @property
+    def sideslip(self) -> float:
+        """``beta = arctan(vy / vx)`` of :attr:`x` (paper 004 Eq. 14) [rad]; 0 below 1 mm/s."""
+        return vm.sideslip(self.x)
+
+    @property
+    def sideslip_variance(self) -> float:
+        """First-order variance of :attr:`sideslip` from the ``(vx, vy)`` block of ``P`` [rad^2]."""
+        return vm.sideslip_variance(self.x, self._filter._P)
+
+    def status(self) -> dict[str, str]:
+        """What this filter adds to ``/diagnostics`` (none by default)."""
+        return {}
