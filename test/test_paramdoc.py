@@ -42,8 +42,11 @@ def test_every_declared_parameter_is_documented_from_one_source():
     never the ``Class.field`` stand-in of an undocumented field."""
     import re
 
+    from rosharness import init_rclpy
+
     from vehicle_estimation.ros.paramdoc import collect
 
+    init_rclpy()
     undocumented = [f"{node}: {row.name}" for node, rows in collect().items() for row in rows.values()
                     if not row.description or re.fullmatch(r"[A-Z]\w*\.\w+", row.description)]
     assert not undocumented, undocumented

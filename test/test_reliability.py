@@ -428,7 +428,7 @@ def mass_faults(stream, start):
     stream = replace_at(stream, topics.ODOMETRY, start - 0.5, [odom_msg(0.0, NAN), odom_msg(0.0, -INF)])
     stream = replace_at(stream, topics.ROAD_SLOPE_STAMPED, start - 0.5, [comp_msg(0.0, NAN, 1e-6)])
     stream = replace_at(stream, topics.IMU_BIAS, start - 0.5, [bias_msg(0.0, gyro=(NAN, 0, 0))])
-    expected = {"imu:invalid": 19, "speed:invalid": 5, "joint_states:malformed": 4, "powertrain:malformed": 3,
+    expected = {"imu:non_finite": 18, "imu:implausible": 1, "speed:invalid": 5, "joint_states:malformed": 4, "powertrain:malformed": 3,
                 "/estimation/odometry:invalid": 2, "/estimation/road_slope_stamped:invalid": 1,
                 "/estimation/imu_bias:invalid": 1}
     return stream, expected, len(absurd_drive)

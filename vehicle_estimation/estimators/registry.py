@@ -136,8 +136,19 @@ class StateSettings:
     p0_diag: tuple[float, ...]
     q_diag: tuple[float, ...]
     r_diag: tuple[float, ...]
-    initial_vx: float
-    init_vx_from_wheel_speeds: bool
+    initial_vx: float = 0.0
+    init_vx_from_wheel_speeds: bool = True
+
+    @classmethod
+    def defaults(cls) -> "StateSettings":
+        """Paper 004 Sec. 7.1's P0, Q and R diagonals, Q read as a density (Q tau per 0.01 s
+        step: per step, 0.1 I would make the predicted measurement covariance ~100 R, the gain
+        ~1 and R unidentifiable, so the VB-ACKF could learn nothing)."""
+        from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
+        paper = VehicleStateConfig()
+        return cls(tuple(float(v) for v in paper.P0.diagonal()),
+                   tuple(float(v) for v in paper.Q.diagonal() * paper.nominal_dt),
+                   tuple(float(v) for v in paper.R.diagonal()))
 
 
 #: The fields of :class:`StateSettings` that every filter takes from the node.
@@ -194,3 +205,15 @@ STATE_FILTERS: dict[str, StateFilter] = {
                          "model (Sec. 3.3, Eqs. 6-7) with the GA-BPNN output correction (Eq. 5)",
                          "aoukf", lazy("state.aoukf:AOUKFConfig"), _aoukf, output_correction=True),
 }
+
+
+def build_state_filter(name: str, vehicle: VehicleParams, settings: StateSettings | None = None,
+                       correction: Any = None) -> StateEstimator:
+    """The filter ``name`` with its default config and the node's ``settings`` (default:
+    :meth:`StateSettings.defaults`), as the state node builds it with its default parameters."""
+    method = lookup(STATE_FILTERS, name, "vehicle-state filter")
+    settings = settings if settings is not None else StateSettings.defaults()
+    config = method.config_type()
+    if config is not None:
+        config, _ = with_state_settings(config, settings)
+    return method.build(vehicle, config, settings, correction)

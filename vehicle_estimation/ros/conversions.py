@@ -122,6 +122,25 @@ def imu_plausible(f: np.ndarray, w: np.ndarray) -> bool:
     return bool(np.max(np.abs(f)) <= MAX_SPECIFIC_FORCE and np.max(np.abs(w)) <= MAX_ANGULAR_RATE)
 
 
+def imu_rejection(f: np.ndarray, w: np.ndarray) -> str | None:
+    """Why every node refuses an IMU sample (its rejection reason), None for a usable one."""
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
+        return "imu:non_finite"
+    if not imu_plausible(f, w):
+        return "imu:implausible"
+    return None
+
+
+def speed_reading(msg: Any) -> tuple[float, float] | None:
+    """(speed [m/s], variance [m^2/s^2] or NaN when the message gives none) of a
+    ``vehicle/speed`` message, None for a non-finite or absurd speed."""
+    v = msg.twist.twist.linear.x
+    if not math.isfinite(v) or abs(v) > MAX_SPEED:
+        return None
+    var = msg.twist.covariance[0]
+    return v, (var if math.isfinite(var) and var > 0.0 else math.nan)
+
+
 #: Largest published vx standard deviation [m/s] of a speed that an observer may take as a
 #: measurement. A wheel- or CAN-aided vx has a few cm/s; a vx the state node dead-reckons from
 #: the accelerometer has its growing uncertainty (and carries the very grade and bias an observer

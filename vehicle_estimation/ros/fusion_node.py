@@ -27,7 +27,6 @@ from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
 from vehicle_estimation.estimators.common.rotations import rotmat_to_quat
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF
-from vehicle_estimation.ros.conversions import MAX_SPEED, imu_arrays, imu_plausible
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S, sec_to_stamp
@@ -42,7 +41,11 @@ class FusionNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("fusion", **node_kwargs)
         # FusionConfig as fusion.* parameters (Tables 2-3 defaults where the paper gives one).
-        config = self.declare_config("fusion", FusionConfig())
+        # How long GNSS aids after a fix: the mass node must agree, so it is one node-level
+        # parameter (set under /**), not fusion.gnss_aiding_timeout_s.
+        timeout = self.declare_shared_setting(FusionConfig, "gnss_aiding_timeout_s")
+        config = self.declare_config("fusion", FusionConfig(gnss_aiding_timeout_s=timeout),
+                                     exclude=("gnss_aiding_timeout_s",))
         self.config = config
         self.odometry_rate = self.declare_float(
             "odometry_rate_hz", 50.0, "Rate of estimation/odometry and the grade [Hz]", 0.1, 1000.0)
@@ -72,13 +75,10 @@ class FusionNode(EstimatorNode):
 
     # -------------------------------------------------------------- inputs
     def on_imu(self, t: float, msg: Imu) -> None:
-        f, w = imu_arrays(msg)
-        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
-            self.reject("imu:non_finite")
+        imu = self.read_imu(msg)
+        if imu is None:
             return
-        if not imu_plausible(f, w):
-            self.reject("imu:implausible")
-            return
+        f, w = imu
         self._last_angular_rate = w
         if not self.ekf.process_imu(t, f, w):
             self.reject("imu:out_of_order")
@@ -126,13 +126,11 @@ class FusionNode(EstimatorNode):
             self.reject("gnss:rejected_by_filter")
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
-        v = msg.twist.twist.linear.x
-        if not math.isfinite(v) or abs(v) > MAX_SPEED:
-            self.reject("speed:invalid")
+        reading = self.read_speed(msg)
+        if reading is None:
             return
-        var = msg.twist.covariance[0]
-        variance = var if math.isfinite(var) and var > 0.0 else None
-        if not self.ekf.update_speed(t, v, variance):
+        v, var = reading
+        if not self.ekf.update_speed(t, v, None if math.isnan(var) else var):
             self.reject("speed:rejected_by_filter")
 
     # -------------------------------------------------------------- outputs

@@ -57,19 +57,12 @@ from sensor_msgs.msg import Imu, JointState, NavSatFix, NavSatStatus
 from std_msgs.msg import Float64
 
 from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.interfaces import MassEstimator
 from vehicle_estimation.estimators.mass.update_window import ACCEL_SOURCES, UpdateWindow
 from vehicle_estimation.estimators.registry import MASS_METHODS
 from vehicle_estimation.ros.conversions import (
-    MAX_SPEED,
-    MalformedMessage,
-    chassis_reading,
-    forward_speed_entry,
-    imu_arrays,
-    imu_plausible,
-    odometry_entry,
-    powertrain_reading,
-)
+    MalformedMessage, chassis_reading, forward_speed_entry, odometry_entry, powertrain_reading)
 from vehicle_estimation.ros.persistence import StateFileError, load_state, save_state
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError
@@ -132,10 +125,7 @@ class MassNode(EstimatorNode):
         # How long the fusion's accelerometer-bias error lasts decides how much of it the
         # forgetting RLS averages out: while GNSS aids the fusion it corrects the bias within
         # seconds; without GNSS the fusion holds its bias and the error stays for the drive.
-        self.gnss_aiding_timeout = self.declare_float(
-            "gnss_aiding_timeout_s", 5.0,
-            "A GNSS fix within this time means the fusion's bias is being corrected (as the "
-            "fusion's own gnss_aiding_timeout_s) [s]", 0.1, 3600.0)
+        self.gnss_aiding_timeout = self.declare_shared_setting(FusionConfig, "gnss_aiding_timeout_s")
         self.aided_bias_correlation = self.declare_float(
             "gnss_aided_bias_correlation_s", 4.0,
             "Correlation time of the fusion's accelerometer-bias error while GNSS aids it, for "
@@ -178,20 +168,19 @@ class MassNode(EstimatorNode):
 
     # -------------------------------------------------------------- inputs
     def on_imu(self, t: float, msg: Imu) -> None:
-        f, w = imu_arrays(msg)
-        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))) or not imu_plausible(f, w):
-            self.reject("imu:invalid")
+        imu = self.read_imu(msg)
+        if imu is None:
             return
+        f, w = imu
         f, _ = self.bias.correct(t, f, w)
         self.window.add_accel(float(f[0]))
         self.have_imu = True
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
-        v = msg.twist.twist.linear.x
-        if math.isfinite(v) and abs(v) <= MAX_SPEED:
-            self.can_speed = (t, v)
-        else:
-            self.reject("speed:invalid")
+        reading = self.read_speed(msg)
+        if reading is None:
+            return
+        self.can_speed = (t, reading[0])
 
     def on_joint_states(self, t: float, msg: JointState) -> None:
         try:
@@ -375,9 +364,7 @@ class MassNode(EstimatorNode):
             values["resumed from persisted state saved at"] = f"{self.resumed_from:.3f}"
         for k, v in self.core.rejected.items():
             values[f"samples skipped: {k}"] = str(v)
-        values.update(self.core.status())
-        return values
-
+        return {**values, **self.core.status()}
 
 
 def main(args: list[str] | None = None) -> int:

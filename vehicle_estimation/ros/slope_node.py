@@ -40,13 +40,7 @@ from std_msgs.msg import Float64
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.registry import SLOPE_METHODS
 from vehicle_estimation.estimators.slope.road_slope import GradeSample
-from vehicle_estimation.ros.conversions import (
-    MAX_SPEED,
-    forward_speed_entry,
-    imu_arrays,
-    imu_plausible,
-    planar_velocity_entry,
-)
+from vehicle_estimation.ros.conversions import forward_speed_entry, planar_velocity_entry
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError
 from vehicle_estimation.ros.runtime.spin import run_node
@@ -112,11 +106,10 @@ class SlopeNode(EstimatorNode):
             raise ParameterError(f"method '{self.method}': {exc}") from exc
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
-        v = msg.twist.twist.linear.x
-        if math.isfinite(v) and abs(v) <= MAX_SPEED:
-            self.can_speed = (t, v)
-        else:
-            self.reject("speed:invalid")
+        reading = self.read_speed(msg)
+        if reading is None:
+            return
+        self.can_speed = (t, reading[0])
 
     def velocity_at(self, t: float) -> tuple[float, float] | None:
         """(vx, vy) for the observer: state node, else fusion (vy 0), else CAN (vy 0)."""
@@ -131,13 +124,10 @@ class SlopeNode(EstimatorNode):
         return None
 
     def on_imu(self, t: float, msg: Imu) -> None:
-        f, w = imu_arrays(msg)
-        if not all(math.isfinite(x) for x in (*f, *w)):
-            self.reject("imu:non_finite")
+        imu = self.read_imu(msg)
+        if imu is None:
             return
-        if not imu_plausible(f, w):
-            self.reject("imu:implausible")
-            return
+        f, w = imu
         grade = None
         if self.core.uses_grade:
             item = self.grade.at(t)

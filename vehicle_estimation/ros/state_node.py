@@ -67,7 +67,6 @@ from vehicle_estimation.estimators.registry import (
     lookup,
     with_state_settings,
 )
-from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
 from vehicle_estimation.estimators.state.gabpnn import (
     BPCorrection,
     default_weights_path,
@@ -75,13 +74,7 @@ from vehicle_estimation.estimators.state.gabpnn import (
 )
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
-    MAX_SPEED,
-    MalformedMessage,
-    chassis_reading,
-    imu_arrays,
-    imu_plausible,
-    lateral_gravity_entry,
-)
+    MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError
 from vehicle_estimation.ros.runtime.spin import run_node
@@ -128,17 +121,13 @@ class StateNode(EstimatorNode):
         self.init_from_wheels = self.declare_bool(
             "init_vx_from_wheel_speeds", True,
             "Start vx from the rear wheel speeds when available (else from initial_vx)")
-        paper = VehicleStateConfig()
+        paper = StateSettings.defaults()
         self.p0_diag = self.declare_float_array(
-            "p0_diag", list(np.diag(paper.P0)), "Initial covariance diagonal of [vx, vy, r, ax, ay] (Sec. 7.1)")
-        # Sec. 7.1's Q = 0.1 I read as a density (Q tau per 0.01 s step): per step it makes the
-        # predicted measurement covariance ~100 R, the gain ~1 and R unidentifiable, so the
-        # VB-ACKF could learn nothing (see the README).
+            "p0_diag", paper.p0_diag, "Initial covariance diagonal of [vx, vy, r, ax, ay] (Sec. 7.1)")
         self.q_diag = self.declare_float_array(
-            "q_diag", list(np.diag(paper.Q) * paper.nominal_dt),
-            "Process noise diagonal per 0.01 s step (Sec. 7.1's 0.1 I as a density)")
+            "q_diag", paper.q_diag, "Process noise diagonal per 0.01 s step (Sec. 7.1's 0.1 I as a density)")
         self.r_diag = self.declare_float_array(
-            "r_diag", list(np.diag(paper.R)), "Measurement noise diagonal of [ax, ay, r] (Sec. 7.1)")
+            "r_diag", paper.r_diag, "Measurement noise diagonal of [ax, ay, r] (Sec. 7.1)")
         self.speed_fallback = self.declare_bool(
             "speed_fallback", True,
             "Without wheel speeds, update vx with vehicle/speed (else vx is dead-reckoned from ax)")
@@ -255,11 +244,11 @@ class StateNode(EstimatorNode):
         self.chassis_t = t
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
-        v, var = msg.twist.twist.linear.x, msg.twist.covariance[0]
-        if not math.isfinite(v) or abs(v) > MAX_SPEED:
-            self.reject("speed:invalid")
+        reading = self.read_speed(msg)
+        if reading is None:
             return
-        if not (math.isfinite(var) and var > 0.0):
+        v, var = reading
+        if math.isnan(var):
             var = self.speed_fallback_std ** 2
         self.speed = (t, v, var)
         self.speed_t = t
@@ -296,13 +285,10 @@ class StateNode(EstimatorNode):
         return default if missing else item.value
 
     def on_imu(self, t: float, msg: Imu) -> None:
-        f, w = imu_arrays(msg)
-        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(w))):
-            self.reject("imu:non_finite")
+        imu = self.read_imu(msg)
+        if imu is None:
             return
-        if not imu_plausible(f, w):
-            self.reject("imu:implausible")
-            return
+        f, w = imu
         f, w = self.bias.correct(t, f, w)
         fresh = self.chassis is not None and t - self.chassis_t <= self.stale_input_s
         self.set_missing("vehicle/joint_states", not fresh)

@@ -42,15 +42,13 @@ from pathlib import Path
 import numpy as np
 
 from vehicle_estimation.contract import topics as T
-from vehicle_estimation.estimators.state.aoukf import AOUKFConfig, VehicleStateAOUKF
-from vehicle_estimation.estimators.state.ckf import VehicleStateCKF, VehicleStateConfig
-from vehicle_estimation.estimators.state.vbackf import VBConfig, VehicleStateVBACKF
+from vehicle_estimation.estimators.registry import build_state_filter
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.validation.stanford import baseline_linear_kf
 from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
 from vehicle_estimation.paths import params_file
-from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S
+from vehicle_estimation.estimators.common.guard import STAMP_TOLERANCE_S
 
 PARAMS_FILE = params_file("commonroad_bmw320i")
 FILTER_RATE_HZ = 100.0
@@ -117,16 +115,7 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
 # --------------------------------------------------------------------------- cores
 def make_core(name: str, vehicle: VehicleParams):
     """A core with the state node's default tuning (see the module docstring)."""
-    if name == "aoukf":
-        return VehicleStateAOUKF(vehicle, AOUKFConfig(initial_vx=0.0, init_vx_from_wheel_speeds=True), None)
-    paper = VehicleStateConfig()
-    config = VehicleStateConfig(P0=np.diag(np.diag(paper.P0)), Q=np.diag(np.diag(paper.Q) * paper.nominal_dt),
-                                R=np.diag(np.diag(paper.R)), initial_vx=0.0, init_vx_from_wheel_speeds=True)
-    if name == "vbackf":
-        return VehicleStateVBACKF(vehicle, config, VBConfig())
-    if name == "ckf":
-        return VehicleStateCKF(vehicle, config)
-    raise ValueError(f"unknown filter {name!r}")
+    return build_state_filter(name, vehicle)
 
 
 def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:

@@ -22,6 +22,7 @@ from sensor_msgs.msg import Imu
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.ros.cdr import raw_reader
+from vehicle_estimation.ros.conversions import imu_arrays, imu_rejection, speed_reading
 from vehicle_estimation.ros.runtime.diagnostics import NodeHealth
 from vehicle_estimation.ros.runtime.input_queue import StampOrderedInputs
 from vehicle_estimation.ros.runtime.parameters import ParameterDeclarations
@@ -174,6 +175,24 @@ class EstimatorNode(ParameterDeclarations, Node):
     def missing(self) -> set[str]:
         """Inputs this node runs without (a fallback is active); ``/diagnostics`` names them."""
         return self.health.missing
+
+    def read_imu(self, msg: Any) -> tuple[Any, Any] | None:
+        """Specific force and angular rate of an IMU message (arrays, body frame), or None for
+        a non-finite or physically absurd sample, which is rejected and counted."""
+        f, w = imu_arrays(msg)
+        reason = imu_rejection(f, w)
+        if reason is not None:
+            self.reject(reason)
+            return None
+        return f, w
+
+    def read_speed(self, msg: Any) -> tuple[float, float] | None:
+        """(speed, variance or NaN) of a ``vehicle/speed`` message, or None for a non-finite or
+        absurd speed, which is rejected and counted."""
+        reading = speed_reading(msg)
+        if reading is None:
+            self.reject("speed:invalid")
+        return reading
 
     def reject(self, reason: str) -> None:
         self.health.rejected[reason] += 1

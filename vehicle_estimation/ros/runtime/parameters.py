@@ -140,6 +140,17 @@ class ParameterDeclarations:
             raise ParameterError(text if text.startswith(f"{prefix}.") else f"{prefix}.*: {text}") from exc
         return config
 
+    def declare_shared_setting(self, config_type: Any, field_name: str) -> Any:
+        """Declare the ``config_type`` field ``field_name`` as a node-level parameter of that
+        name, with the field's default, documentation and range: for a fact that several nodes
+        must agree on, set once in a params file's ``/**`` section."""
+        field = next(f for f in dataclasses.fields(config_type) if f.name == field_name)
+        default = field.default
+        doc = f"{field.metadata['doc']} (shared by the nodes that use it: set it under /**)"
+        if isinstance(default, bool):
+            return self.declare_bool(field_name, default, doc)
+        return self.declare_float(field_name, default, doc, bounds=field.metadata.get("bounds"))
+
     def declare_vehicle(self) -> VehicleParams:
         """Declare ``vehicle.*`` with the ranges and docs of :class:`VehicleParams` and build it."""
         return self.declare_config("vehicle", VehicleParams())
