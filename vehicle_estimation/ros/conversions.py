@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.rotations import gravity_on_body_y, yaw_of_quat
 from vehicle_estimation.ros.runtime.stamps import stamp_to_sec
 
 NAN = float("nan")
@@ -176,10 +177,7 @@ def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
     if not math.isfinite(v):
         return None
     q = msg.pose.pose.orientation
-    x, y, z, w = q.x, q.y, q.z, q.w
-    n = x * x + y * y + z * z + w * w
-    yaw = math.atan2(2.0 * (w * z + x * y) / n, 1.0 - 2.0 * (y * y + z * z) / n) if n > 0.0 else math.nan
-    return (t, (t, v, yaw if math.isfinite(yaw) else math.nan))
+    return (t, (t, v, yaw_of_quat(q.x, q.y, q.z, q.w)))
 
 
 def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
@@ -191,11 +189,8 @@ def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
     stamp = msg.header.stamp
     t = stamp_to_sec(stamp)
     q = msg.pose.pose.orientation
-    x, y, z, w = q.x, q.y, q.z, q.w
-    n = x * x + y * y + z * z + w * w
-    if not (math.isfinite(n) and n > 0.5):
-        return None
-    return t, (t, 2.0 * (y * z + w * x) / n)
+    share = gravity_on_body_y(q.x, q.y, q.z, q.w)
+    return None if math.isnan(share) else (t, (t, share))
 
 
 def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:

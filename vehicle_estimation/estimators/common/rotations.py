@@ -120,6 +120,23 @@ def euler_from_quat(q) -> tuple:
     return euler_from_rotmat(quat_to_rotmat(q))
 
 
+def yaw_of_quat(x: float, y: float, z: float, w: float) -> float:
+    """Yaw of R(q) = Rz(yaw) Ry(pitch) Rx(roll) for a quaternion of any norm, in scalar maths
+    (one per message in the nodes); NaN for a zero or non-finite quaternion."""
+    n = x * x + y * y + z * z + w * w
+    yaw = math.atan2(2.0 * (w * z + x * y) / n, 1.0 - 2.0 * (y * y + z * z) / n) if n > 0.0 else math.nan
+    return yaw if math.isfinite(yaw) else math.nan
+
+
+def gravity_on_body_y(x: float, y: float, z: float, w: float) -> float:
+    """R[2, 1] = sin(roll) cos(pitch) of the body -> world rotation q (any norm): the share of
+    gravity a body-fixed accelerometer reads on its y axis; NaN for a quaternion far from unit."""
+    n = x * x + y * y + z * z + w * w
+    if not (math.isfinite(n) and n > 0.5):
+        return math.nan
+    return 2.0 * (y * z + w * x) / n
+
+
 def rot_z(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
