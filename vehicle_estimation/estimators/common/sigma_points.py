@@ -27,6 +27,7 @@ Also here, the matrix helpers every filter of the package uses: :func:`as_matrix
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from typing import Any, Callable, Optional, Protocol
 
 import numpy as np
@@ -134,7 +135,7 @@ class UnscentedPoints:
 
 
 # ----------------------------------------------------------------------------------------
-class AdditiveNoiseFilter:
+class AdditiveNoiseFilter(ABC):
     """State of a filter on ``x_k = f(x_k-1, dt, *args) + v``, ``z = h(x, *args) + w``:
     the models, additive ``Q``/``R``, the mean and covariance (read as copies) and the last
     prior (:attr:`x_prior`, :attr:`P_prior`: the GA-BPNN features of paper 002 use it)."""
@@ -165,13 +166,13 @@ class AdditiveNoiseFilter:
         self._P = as_matrix(P0, self.n, "P0").copy()
         self.x_prior, self.P_prior = self._x.copy(), self._P.copy()
 
+    @abstractmethod
     def predict(self, dt: float, *args, Q: Optional[np.ndarray] = None) -> None:
         """Time update over ``dt`` with ``f(x, dt, *args)`` and ``Q`` (default: :attr:`Q`)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def update(self, z, *args, R: Optional[np.ndarray] = None, select=None) -> Any:
         """Measurement update with ``z``, the ``select``-ed channels of ``h(x, *args)``."""
-        raise NotImplementedError
 
     def _noise(self, R: Optional[np.ndarray], select) -> np.ndarray:
         """``R`` (default: :attr:`R`) restricted to the ``select``-ed channels."""

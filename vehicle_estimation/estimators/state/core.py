@@ -19,6 +19,7 @@ A core satisfies :class:`~vehicle_estimation.estimators.interfaces.StateEstimato
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections import Counter
 from typing import Optional, Sequence
 
@@ -31,7 +32,7 @@ from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 
 
-class VehicleStateCore(StepGuard):
+class VehicleStateCore(StepGuard, ABC):
     """Bookkeeping of a vehicle-state core around its Kalman filter :attr:`filter`.
 
     A subclass builds ``self._filter`` and implements ``step`` with :meth:`_begin_step`,
@@ -106,9 +107,9 @@ class VehicleStateCore(StepGuard):
         vx = float(self._filter.x[0])
         return vx if math.isfinite(vx) else None
 
+    @abstractmethod
     def _vx_after_gap(self, inputs: VehicleInputs) -> Optional[float]:
         """The vx a re-initialisation after a stamp gap starts from (None: initial)."""
-        raise NotImplementedError
 
     def _with_extra_vx_noise(self, Q: np.ndarray, dt: float) -> np.ndarray:
         """``Q`` plus :attr:`extra_vx_noise_density` ``* dt`` on vx (a copy when that is added)."""
@@ -155,8 +156,9 @@ class VehicleStateCore(StepGuard):
         self.speed_updates += 1
         return True
 
+    @abstractmethod
     def _correct_speed(self, vx: float, variance: float) -> None:
-        raise NotImplementedError
+        """Correct the filter with a measured vx of ``variance`` (the filter's own update)."""
 
     # -- outputs -------------------------------------------------------------------------
     @property
