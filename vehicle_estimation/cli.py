@@ -89,15 +89,19 @@ COMMANDS: dict[str, Command] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every subcommand, or, given ``command``, with only that one's options
+    loaded: the others are listed by name and help, and their modules (scipy, torch, ...)
+    are not imported, which keeps a command's start-up to what it needs."""
     parser = argparse.ArgumentParser(prog="vehicle-estimation", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    for name, command in COMMANDS.items():
-        if command.own_argv:     # listed here; main() hands it the rest of the line
-            sub.add_parser(name, help=command.help, add_help=False)
+    for name, entry in COMMANDS.items():
+        if entry.own_argv or (command is not None and name != command):
+            # listed here; an own_argv command's main() gets the rest of the line
+            sub.add_parser(name, help=entry.help, add_help=False)
         else:
-            command.load().add_arguments(sub.add_parser(name, help=command.help, description=command.help))
+            entry.load().add_arguments(sub.add_parser(name, help=entry.help, description=entry.help))
     return parser
 
 
@@ -106,16 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     command = COMMANDS.get(argv[0]) if argv else None
     if command is not None and command.own_argv:
         return command.load().main(argv[1:])
-    args = build_parser().parse_args(argv)
+    args = build_parser(argv[0] if command is not None else None).parse_args(argv)
     return COMMANDS[args.command].load().main(args)
-
-
-def run_as_script(module: ModuleType) -> int:
-    """``python -m <module>`` of a subcommand's module: its options, under the module's name."""
-    name = module.__spec__.name if module.__spec__ is not None else module.__name__
-    parser = argparse.ArgumentParser(prog=f"python -m {name}", description=(module.__doc__ or "").split("\n\n")[0])
-    module.add_arguments(parser)
-    return module.main(parser.parse_args())
 
 
 if __name__ == "__main__":

@@ -62,11 +62,14 @@ def _ta_aekf(vehicle: VehicleParams, config: Any) -> MassEstimator:
 
 MASS_METHODS: dict[str, Method] = {
     "ffrls": Method("ffrls", "paper 004 Sec. 6: forgetting-factor RLS with braking samples and "
-                    "the threshold judgment (Eqs. 28-31)", "ffrls", lazy("mass.mass_ffrls:FFRLSMassConfig"), lazy("mass.mass_ffrls:FFRLSMassEstimator")),
+                    "the threshold judgment (Eqs. 28-31)", "ffrls",
+                    lazy("mass.mass_ffrls:FFRLSMassConfig"), lazy("mass.mass_ffrls:FFRLSMassEstimator")),
     "rls": Method("rls", "paper 003 Secs. 2-4: RLS with forgetting on driving samples, gear "
-                  "prediction and the OBD-II torque map (Eqs. 4-11, 49)", "mass", lazy("mass.mass_rls:MassRLSConfig"), lazy("mass.mass_rls:LongitudinalMassEstimator")),
+                  "prediction and the OBD-II torque map (Eqs. 4-11, 49)", "mass",
+                  lazy("mass.mass_rls:MassRLSConfig"), lazy("mass.mass_rls:LongitudinalMassEstimator")),
     "ta_aekf": Method("ta_aekf", "paper 000: adaptive EKF on [v, 1/m] aided by a transformer's "
-                      "mass, weighted by the confidence level tau (Alg. 1)", "ta_aekf", lazy("mass.ta_aekf:TaAekfConfig"), _ta_aekf),
+                      "mass, weighted by the confidence level tau (Alg. 1)", "ta_aekf",
+                      lazy("mass.ta_aekf:TaAekfConfig"), _ta_aekf),
 }
 
 
@@ -79,22 +82,14 @@ def _configs_as_given(prefix: str, defaults: Any) -> Any:
     return defaults
 
 
-def _fusion_pitch(vehicle: VehicleParams, config: Any, configure: Configure = _configs_as_given) -> Any:
-    from vehicle_estimation.estimators.slope.pitch_grade import PitchGradeSlope
-    from vehicle_estimation.estimators.slope.road_slope import RoadSlopeEstimator
-    return RoadSlopeEstimator(vehicle, grade=PitchGradeSlope(config))
+def _one_source(role: str, core: str) -> Callable[..., Any]:
+    """The builder of a slope method with one source: ``core`` (``"module:Name"``, built from
+    the method's config) as the estimator's ``role``, ``"grade"`` or ``"observer"``."""
 
+    def build(vehicle: VehicleParams, config: Any, configure: Configure = _configs_as_given) -> Any:
+        return lazy("slope.road_slope:RoadSlopeEstimator")(vehicle, **{role: lazy(core)(config)})
 
-def _classical(vehicle: VehicleParams, config: Any, configure: Configure = _configs_as_given) -> Any:
-    from vehicle_estimation.estimators.slope.observers import ClassicalSlopeObserver
-    from vehicle_estimation.estimators.slope.road_slope import RoadSlopeEstimator
-    return RoadSlopeEstimator(vehicle, observer=ClassicalSlopeObserver(config))
-
-
-def _cubic_prediction(vehicle: VehicleParams, config: Any, configure: Configure = _configs_as_given) -> Any:
-    from vehicle_estimation.estimators.slope.cubic_prediction import CubicPredictionSlopeObserver
-    from vehicle_estimation.estimators.slope.road_slope import RoadSlopeEstimator
-    return RoadSlopeEstimator(vehicle, observer=CubicPredictionSlopeObserver(config))
+    return build
 
 
 def _auto_slope(vehicle: VehicleParams, config: Any, configure: Configure = _configs_as_given) -> Any:
@@ -115,14 +110,18 @@ def _auto_slope(vehicle: VehicleParams, config: Any, configure: Configure = _con
 #: default the defaults are used).
 SLOPE_METHODS: dict[str, Method] = {
     "auto": Method("auto", "fusion_pitch while the fusion grade is fresh and converged, else "
-                   "cubic_prediction, without a jump at a switch", "auto", lazy("slope.auto:AutoSlopeConfig"), _auto_slope),
+                   "cubic_prediction, without a jump at a switch", "auto",
+                   lazy("slope.auto:AutoSlopeConfig"), _auto_slope),
     "classical": Method("classical", "paper 004 Eqs. 32-33: the contrasted observer on the theta' = 0 "
-                        "slope model", "classical", lazy("slope.observers:ClassicalSlopeConfig"), _classical),
+                        "slope model", "classical", lazy("slope.observers:ClassicalSlopeConfig"),
+                        _one_source("observer", "slope.observers:ClassicalSlopeObserver")),
     "cubic_prediction": Method("cubic_prediction", "paper 004 Sec. 5: the slope prediction model "
                                "(Eqs. 15-20) with the cubic observer (Eqs. 21-27)", "cubic_prediction",
-                               lazy("slope.cubic_prediction:CubicPredictionSlopeConfig"), _cubic_prediction),
+                               lazy("slope.cubic_prediction:CubicPredictionSlopeConfig"),
+                               _one_source("observer", "slope.cubic_prediction:CubicPredictionSlopeObserver")),
     "fusion_pitch": Method("fusion_pitch", "paper 003 Sec. 7.2: the grade from the fusion's pitch, "
-                           "LWMA-smoothed", "fusion_pitch", lazy("slope.pitch_grade:PitchGradeConfig"), _fusion_pitch),
+                           "LWMA-smoothed", "fusion_pitch", lazy("slope.pitch_grade:PitchGradeConfig"),
+                           _one_source("grade", "slope.pitch_grade:PitchGradeSlope")),
 }
 
 
@@ -200,7 +199,8 @@ STATE_FILTERS: dict[str, StateFilter] = {
     "ckf": StateFilter("ckf", "paper 004 Sec. 7: the plain cubature Kalman filter on the 4-wheel Dugoff "
                        "model (Eqs. 1-9), the paper's contrast", "", lambda: None, _ckf),
     "vbackf": StateFilter("vbackf", "paper 004 Sec. 4: the variational Bayesian adaptive CKF, the "
-                          "measurement noise learnt online (Eqs. 10-13)", "vbackf", lazy("state.vbackf:VBConfig"), _vbackf),
+                          "measurement noise learnt online (Eqs. 10-13)", "vbackf",
+                          lazy("state.vbackf:VBConfig"), _vbackf),
     "aoukf": StateFilter("aoukf", "paper 002: the adaptive anti-outlier UKF on the 3-DOF Magic-Formula "
                          "model (Sec. 3.3, Eqs. 6-7) with the GA-BPNN output correction (Eq. 5)",
                          "aoukf", lazy("state.aoukf:AOUKFConfig"), _aoukf, output_correction=True),

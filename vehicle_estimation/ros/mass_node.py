@@ -107,7 +107,6 @@ class MassNode(EstimatorNode):
         self._resume_persisted()
         self.bias = FusionImuBias()
         self.window = UpdateWindow()
-        self.have_imu = False
         self.accel_source = self.declare_str(
             "accel_source", "auto", "Longitudinal acceleration for the RLS (see UpdateWindow.acceleration)",
             ACCEL_SOURCES)
@@ -174,7 +173,6 @@ class MassNode(EstimatorNode):
         f, w = imu
         f, _ = self.bias.correct(t, f, w)
         self.window.add_accel(float(f[0]))
-        self.have_imu = True
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
         reading = self.read_speed(msg)
@@ -347,7 +345,6 @@ class MassNode(EstimatorNode):
         self.core.reset()
         self.bias.clear()
         self.window.clear()
-        self.have_imu = False
         self.slope.clear()
         self.odom_speed.clear()
         self.state_speed.clear()

@@ -190,7 +190,7 @@ class StateNode(EstimatorNode):
         self.pub_beta_stamped = self.publisher(Vector3Stamped, topics.SIDESLIP_STAMPED)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
-        self.speed: tuple[float, float, float] | None = None     # (stamp, vx, variance), unused yet
+        self.speed: tuple[float, float, float] | None = None     # (stamp, vx, variance) not yet used
         self.vx_source = VX_FROM_WHEELS if self.speed_fallback else "wheel speeds, else dead reckoning from ax"
         if self.speed_fallback:
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
