@@ -78,6 +78,35 @@ def test_no_import_cycle():
     assert not cycles, cycles
 
 
+def _top_level_names(path: Path) -> set[str]:
+    """What ``from <module> import name`` can find in ``path`` without running it."""
+    names: set[str] = set()
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names.update(n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name))
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+    return names
+
+
+def test_every_package_import_names_something_that_exists():
+    # lazy imports inside functions (the CLI's ``python -m`` entry points) run only when a
+    # user starts that script, so a name removed from its module would fail nowhere else
+    names = {_module_name(p): p for p in _modules()}
+    missing: list[str] = []
+    for path in _modules():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not (isinstance(node, ast.ImportFrom) and node.level == 0 and node.module in names):
+                continue
+            defined = _top_level_names(names[node.module])
+            missing += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}" for a in node.names
+                        if a.name != "*" and a.name not in defined and f"{node.module}.{a.name}" not in names]
+    assert not missing, missing
+
+
 @pytest.mark.parametrize("path", [p for p in _modules() if "estimators" in p.parts], ids=lambda p: p.name)
 def test_estimator_cores_import_no_ros(path):
     tree = ast.parse(path.read_text(encoding="utf-8"))

@@ -114,5 +114,13 @@ def main(argv: list[str] | None = None) -> int:
     return COMMANDS[args.command].load().main(args)
 
 
+def run_as_script(module: ModuleType) -> int:
+    """``python -m <module>`` of a subcommand's module: its options, under the module's name."""
+    name = module.__spec__.name if module.__spec__ is not None else module.__name__
+    parser = argparse.ArgumentParser(prog=f"python -m {name}", description=(module.__doc__ or "").split("\n\n")[0])
+    module.add_arguments(parser)
+    return module.main(parser.parse_args())
+
+
 if __name__ == "__main__":
     raise SystemExit(main())
