@@ -1,5 +1,6 @@
 """Tests of the cubature Kalman filter and the paper-004 vehicle-state CKF."""
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -7,7 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.estimators.state.ckf import CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.estimators.state.ckf import (
+    CubatureKalmanFilter,
+    VehicleStateCKF,
+    VehicleStateConfig,
+    axle_force_noise,
+)
 from vehicle_estimation.estimators.state.vehicle_model import (
     VehicleInputs,
     free_rolling_wheel_speeds,
@@ -138,3 +144,65 @@ def test_config_validate_names_field():
     with pytest.raises(ValueError, match="max_gap_s"):
         VehicleStateConfig(max_gap_s=0.0).validate()
     VehicleStateConfig(P0=[1, 1, 1, 1, 1]).validate()
+
+
+def _vy_rmse(config: VehicleStateConfig, radius_error) -> tuple[float, float]:
+    """vy and vx RMSE [m/s] after 2 s on the synthetic drive, with wheel speeds that rolling
+    radii ``radius_error`` (relative, per wheel) off the vehicle's turn into slip the car does
+    not have."""
+    f = VehicleStateCKF(SEDAN, config)
+    vy_err, vx_err = [], []
+    for t, u, z, x in _drive(seconds=8.0):
+        u = VehicleInputs(u.steer_angle, u.wheel_speeds * (1.0 + np.asarray(radius_error)), u.slope)
+        assert f.step(t, u, z)
+        if t > 2.0:
+            vy_err.append(f.x[1] - x[1])
+            vx_err.append(f.x[0] - x[0])
+    return float(np.sqrt(np.mean(np.square(vy_err)))), float(np.sqrt(np.mean(np.square(vx_err))))
+
+
+def test_wheel_speeds_as_a_speed_measurement_survive_a_rolling_radius_error():
+    paper = VehicleStateConfig(initial_vx=20.0, Q=1e-3 * np.eye(5))
+    measured_vx = VehicleStateConfig(initial_vx=20.0, Q=1e-3 * np.eye(5), wheel_slip_forces=False)
+    # worn tyres on the driven front axle, 1.5 % smaller: the paper's model reads 1.5 % more
+    # slip on the front axle than on the rear, a phantom force pair of ~1 kN per wheel
+    worn_front = [-0.015, -0.015, 0.0, 0.0]
+    vy_paper, vx_paper = _vy_rmse(paper, worn_front)
+    vy_speed, vx_speed = _vy_rmse(measured_vx, worn_front)
+    assert vx_paper > 0.1                       # ~0.16 m/s
+    assert vx_speed < 0.2 * vx_paper            # the undriven rear wheels measure vx: ~0.01 m/s
+    assert vy_speed <= vy_paper
+    f = VehicleStateCKF(SEDAN, measured_vx)
+    for t, u, z, x in _drive(seconds=1.0):
+        f.step(t, u, z)
+    assert f.speed_updates >= 99                # one per step
+
+
+def test_axle_force_noise_moves_vy_and_yaw_rate_together():
+    cfg = VehicleStateConfig(front_axle_force_std=1000.0, rear_axle_force_std=300.0)
+    q = axle_force_noise(SEDAN, cfg)
+    m, iz, lf, lr = SEDAN.mass, SEDAN.yaw_inertia, SEDAN.lf, SEDAN.lr
+    dt = cfg.nominal_dt
+    assert q[1, 1] == pytest.approx(dt * (1000.0 ** 2 + 300.0 ** 2) / m ** 2)
+    assert q[2, 2] == pytest.approx(dt * ((1000.0 * lf) ** 2 + (300.0 * lr) ** 2) / iz ** 2)
+    assert q[1, 2] == pytest.approx(dt * (1000.0 ** 2 * lf - 300.0 ** 2 * lr) / (m * iz))
+    assert np.count_nonzero(q) == 4                     # only the vy/r block
+    assert np.all(np.linalg.eigvalsh(q) >= -1e-18)
+    f = VehicleStateCKF(SEDAN, cfg)
+    np.testing.assert_allclose(f.process_noise, cfg.Q + q)
+    assert not np.any(axle_force_noise(SEDAN, VehicleStateConfig()))   # the paper's Q alone
+
+
+def test_steered_undriven_wheels_measure_their_free_rolling_speed():
+    # rear drive: the undriven wheels are the steered ones, whose speed is
+    # vx cos(delta) + (vy + l_F r) sin(delta), not vx
+    rear_driven = dataclasses.replace(SEDAN, driven_axle="rear")
+    f = VehicleStateCKF(rear_driven, VehicleStateConfig(initial_vx=20.0, wheel_slip_forces=False))
+    x = np.array([20.0, 0.6, 0.35, 0.0, 0.0])
+    delta = 0.12
+    u = VehicleInputs(delta, free_rolling_wheel_speeds(x, delta, rear_driven), 0.0)
+    assert f.step(0.0, u, measurement(x, u, rear_driven))
+    f.filter.reset(x, np.diag([1.0, 0.1, 0.01, 1.0, 1.0]))
+    f._update_speed_from_wheels(u)
+    assert abs(f.filter.last_innovation[0]) < 1e-9
+    np.testing.assert_allclose(f.x, x, atol=1e-9)    # read as vx, the wheels would say 19.98 m/s

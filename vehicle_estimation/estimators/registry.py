@@ -137,6 +137,10 @@ class StateSettings:
     r_diag: tuple[float, ...]
     initial_vx: float = 0.0
     init_vx_from_wheel_speeds: bool = True
+    wheel_slip_forces: bool = True
+    wheel_radius_std: float = 0.01
+    front_axle_force_std: float = 0.0
+    rear_axle_force_std: float = 0.0
 
     @classmethod
     def defaults(cls) -> "StateSettings":
@@ -148,6 +152,17 @@ class StateSettings:
         return cls(tuple(float(v) for v in paper.P0.diagonal()),
                    tuple(float(v) for v in paper.Q.diagonal() * paper.nominal_dt),
                    tuple(float(v) for v in paper.R.diagonal()))
+
+    @classmethod
+    def from_parameters(cls, parameters: Mapping[str, Any]) -> "StateSettings":
+        """The :meth:`defaults` with the fields that ``parameters`` (a state node's
+        ``ros__parameters``, as in a params file) sets: how offline tools run a core with the
+        shipped tuning."""
+        fields = {f.name: parameters[f.name] for f in dataclasses.fields(cls) if f.name in parameters}
+        for name in ("p0_diag", "q_diag", "r_diag"):
+            if name in fields:
+                fields[name] = tuple(float(v) for v in fields[name])
+        return dataclasses.replace(cls.defaults(), **fields)
 
 
 #: The fields of :class:`StateSettings` that every filter takes from the node.
@@ -177,7 +192,11 @@ def _paper004_config(settings: StateSettings) -> Any:
     from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
     return VehicleStateConfig.from_diagonals(settings.p0_diag, settings.q_diag, settings.r_diag,
                                              initial_vx=settings.initial_vx,
-                                             init_vx_from_wheel_speeds=settings.init_vx_from_wheel_speeds)
+                                             init_vx_from_wheel_speeds=settings.init_vx_from_wheel_speeds,
+                                             wheel_slip_forces=settings.wheel_slip_forces,
+                                             wheel_radius_std=settings.wheel_radius_std,
+                                             front_axle_force_std=settings.front_axle_force_std,
+                                             rear_axle_force_std=settings.rear_axle_force_std)
 
 
 def _ckf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:

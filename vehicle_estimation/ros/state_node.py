@@ -72,6 +72,7 @@ from vehicle_estimation.estimators.state.gabpnn import (
     default_weights_path,
     load_correction,
 )
+from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -139,8 +140,10 @@ class StateNode(EstimatorNode):
         self.speed_fallback_std = self.declare_float(
             "speed_fallback_std", 0.3,
             "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
-        self.settings = StateSettings(tuple(self.p0_diag), tuple(self.q_diag), tuple(self.r_diag),
-                                      self.initial_vx, self.init_from_wheels)
+        self.settings = StateSettings(
+            tuple(self.p0_diag), tuple(self.q_diag), tuple(self.r_diag), self.initial_vx, self.init_from_wheels,
+            **{name: self.declare_setting(VehicleStateConfig, name) for name in (
+                "wheel_slip_forces", "wheel_radius_std", "front_axle_force_std", "rear_axle_force_std")})
         self.filter_config = self._declare_filter_config()
         self.correction: BPCorrection | None = None
         if self.method.output_correction:

@@ -9,10 +9,10 @@ contract and ground truth), and runs, without ROS:
   angle (steering wheel / ``steering_ratio``) and the CAN speed (zero-order hold);
 * ``VehicleStateCKF``, ``VehicleStateVBACKF`` and ``VehicleStateAOUKF`` fed as
   ``ros/state_node.py`` feeds them (mirrored here, that file is not imported: it needs rclpy):
-  the node's default tunings (``p0_diag`` = paper P0, ``q_diag`` = paper Q x 0.01 s, ``r_diag``
-  = paper R, ``initial_vx`` 0 and ``init_vx_from_wheel_speeds`` true as in
-  ``params/estimation.yaml``, default ``vbackf.*``/``aoukf.*``, no GA-BPNN weights for this
-  car), IMU without the fusion's bias (the node runs alone here), but with the node's
+  the node's shipped tuning (the ``vehicle_state`` section of ``params/estimation.yaml``:
+  ``p0_diag``, ``q_diag``, ``r_diag``, ``initial_vx``, ``init_vx_from_wheel_speeds``,
+  ``wheel_slip_forces`` and the axle force noise; default ``vbackf.*``/``aoukf.*``, no GA-BPNN
+  weights for this car), IMU without the fusion's bias (the node runs alone here), but with the node's
   ``roll_compensation``: ``g sin(roll) cos(pitch)`` taken out of the measured ay, with the
   ground-truth attitude standing in for the fusion's (``--roll truth``, default; ``--roll none``
   feeds the raw ay, which on the CommonRoad car reads 15 % above the true ay in a corner:
@@ -25,7 +25,8 @@ contract and ground truth), and runs, without ROS:
   ``vehicle/speed`` through ``update_speed``: the node's ``speed_fallback``).
 
 Metrics from ``start`` (default the end of the warm-up, 5 s): sideslip RMSE [deg], vy MAE and
-RMSE [m/s], vx RMSE [m/s], and the ratio of the filter's sideslip RMSE to the baseline's.
+RMSE [m/s], vx RMSE [m/s], the ratio of the filter's sideslip RMSE to the baseline's, and the
+share of vy errors within twice the filter's own sigma (honest: 95 %).
 The baseline takes the raw ay (textbook, and as ``validate`` feeds it).
 CLI: ``python -m vehicle_estimation.validation.lateral BAG... [--vehicle YAML] [--wheel-radius R]
 [--roll truth|none]``.
@@ -40,9 +41,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from vehicle_estimation.contract import topics as T
-from vehicle_estimation.estimators.registry import build_state_filter
+from vehicle_estimation.estimators.registry import StateSettings, build_state_filter
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.validation.stanford import baseline_linear_kf
@@ -98,10 +100,11 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
             else:
                 tw = msg.twist.twist
                 rows[topic].append((t, tw.linear.x, tw.linear.y, tw.angular.z))
-    arr = {k: np.array(v, dtype=float) for k, v in rows.items()}
-    imu, js, sp, gt, gb = (arr[T.IMU], arr[T.JOINT_STATES], arr[T.SPEED], arr[T.GT_VEHICLE_STATE],
-                           arr[T.GT_SIDESLIP])
-    go = arr[T.GT_ODOMETRY].reshape(-1, 2)
+    widths = {T.IMU: 7, T.JOINT_STATES: 6, T.SPEED: 3, T.GT_VEHICLE_STATE: 4, T.GT_SIDESLIP: 2, T.GT_ODOMETRY: 2}
+    # a topic the bag lacks (no CAN speed, no attitude truth) is an empty table
+    arr = {k: np.array(v, dtype=float).reshape(-1, widths[k]) for k, v in rows.items()}
+    imu, js, sp, gt, gb, go = (arr[T.IMU], arr[T.JOINT_STATES], arr[T.SPEED], arr[T.GT_VEHICLE_STATE],
+                               arr[T.GT_SIDESLIP], arr[T.GT_ODOMETRY])
     return {
         "imu": {"t": imu[:, 0], "f": imu[:, 1:4], "w": imu[:, 4:7]},
         "joints": {"t": js[:, 0], "wheels": js[:, 1:5], "steering_wheel": js[:, 5]},
@@ -113,9 +116,16 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
 
 
 # --------------------------------------------------------------------------- cores
+def shipped_state_settings() -> StateSettings:
+    """The state node's tuning in the shipped ``params/estimation.yaml``."""
+    with open(params_file("estimation"), encoding="utf-8") as stream:
+        shipped = yaml.safe_load(stream)
+    return StateSettings.from_parameters(shipped["vehicle_state"]["ros__parameters"])
+
+
 def make_core(name: str, vehicle: VehicleParams):
-    """A core with the state node's default tuning (see the module docstring)."""
-    return build_state_filter(name, vehicle)
+    """A core with the state node's shipped tuning (see the module docstring)."""
+    return build_state_filter(name, vehicle, settings=shipped_state_settings())
 
 
 def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:
@@ -192,9 +202,10 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
                 and core.update_speed(speed[1], speed[2])):
             speed = None
         x = np.asarray(core.x, dtype=float)
-        out.append((t, x[0], x[1], x[2], float(core.sideslip)))
+        out.append((t, x[0], x[1], x[2], float(core.sideslip), float(core.P[1, 1])))
     a = np.array(out)
-    return {"t": a[:, 0], "vx": a[:, 1], "vy": a[:, 2], "yaw_rate": a[:, 3], "sideslip": a[:, 4]}
+    return {"t": a[:, 0], "vx": a[:, 1], "vy": a[:, 2], "yaw_rate": a[:, 3], "sideslip": a[:, 4],
+            "vy_variance": a[:, 5]}
 
 
 def run_baseline(drive: dict, vehicle: VehicleParams) -> dict[str, np.ndarray]:
@@ -224,9 +235,15 @@ def _scores(est: dict, truth: dict, start: float) -> dict[str, float]:
     b_e, b_r = err("sideslip", truth["sideslip_t"], truth["sideslip"])
     vy_e, vy_r = err("vy", truth["t"], truth["vy"])
     vx_e, vx_r = err("vx", truth["t"], truth["vx"])
-    return {"sideslip_rmse_deg": math.degrees(metrics.rmse(b_e, b_r)),
-            "vy_mae": metrics.mae(vy_e, vy_r), "vy_rmse": metrics.rmse(vy_e, vy_r),
-            "vx_rmse": metrics.rmse(vx_e, vx_r)}
+    scores = {"sideslip_rmse_deg": math.degrees(metrics.rmse(b_e, b_r)),
+              "vy_mae": metrics.mae(vy_e, vy_r), "vy_rmse": metrics.rmse(vy_e, vy_r),
+              "vx_rmse": metrics.rmse(vx_e, vx_r)}
+    if "vy_variance" in est:     # is the published vy variance honest? (95 % within 2 sigma)
+        t_vy, e_vy, r_vy = metrics.align(est["t"], est["vy"], truth["t"], truth["vy"])
+        sigma = np.sqrt(np.interp(t_vy, est["t"], est["vy_variance"]))
+        sel = t_vy >= start
+        scores["vy_within_2sigma"] = float(np.mean(np.abs(e_vy[sel] - r_vy[sel]) <= 2.0 * sigma[sel]))
+    return scores
 
 
 def compare_state_filters(bag: Path, *, vehicle: VehicleParams | str | Path | None = None,
@@ -261,13 +278,15 @@ def compare_state_filters(bag: Path, *, vehicle: VehicleParams | str | Path | No
 def format_table(result: dict) -> str:
     lines = [f"{Path(result['bag']).name} (wheel_radius {result['wheel_radius']:.5f} m, "
              f"roll compensation {result.get('roll', DEFAULT_ROLL)})",
-             f"{'estimator':<16}{'beta RMSE deg':>14}{'vy MAE':>9}{'vy RMSE':>9}{'vx RMSE':>9}{'ratio':>8}"]
+             f"{'estimator':<16}{'beta RMSE deg':>14}{'vy MAE':>9}{'vy RMSE':>9}{'vx RMSE':>9}{'ratio':>8}"
+             f"{'vy in 2 sigma':>15}"]
     for key, s in result.items():
         if not isinstance(s, dict):
             continue
         ratio = f"{s['ratio']:8.2f}" if "ratio" in s else f"{'1.00':>8}"
+        within = f"{100.0 * s['vy_within_2sigma']:14.0f}%" if "vy_within_2sigma" in s else f"{'n/a':>15}"
         lines.append(f"{key:<16}{s['sideslip_rmse_deg']:14.3f}{s['vy_mae']:9.4f}{s['vy_rmse']:9.4f}"
-                     f"{s['vx_rmse']:9.4f}{ratio}")
+                     f"{s['vx_rmse']:9.4f}{ratio}{within}")
     return "\n".join(lines)
 
 

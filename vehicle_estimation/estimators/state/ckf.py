@@ -79,6 +79,22 @@ class VehicleStateConfig:
                                  low=0.0, low_open=True)
     min_speed: float = setting(vm.DEFAULT_MIN_SPEED, "Speed floor v_min of the slip definitions [m/s]",
                                low=0.0, low_open=True)
+    wheel_slip_forces: bool = setting(
+        True, "Longitudinal tyre forces from the measured wheel slip (Eqs. 8-9, paper). False: the "
+        "undriven wheels measure only the speed (their free-rolling v_t, Eq. 7) and the tyre model "
+        "runs without longitudinal slip, so a 1 % rolling-radius error is 1 % of speed, not "
+        "~800 N of phantom force per wheel")
+    wheel_radius_std: float = setting(
+        0.01, "Relative uncertainty of the effective rolling radius (wear, pressure, load): the "
+        "std of the vx the wheel speeds measure when wheel_slip_forces is false [-]", low=0.0, high=0.2)
+    front_axle_force_std: float = setting(
+        0.0, "Process noise on the front axle's lateral force, as a density [N/sqrt(s)]: the "
+        "steering angle behind it (ratio, compliance steer, toe) is the least certain input of "
+        "the tyre model. It moves vy and r together, so the measured yaw rate corrects vy "
+        "(0 = paper: only the diagonal Q)", low=0.0, high=1.0e6)
+    rear_axle_force_std: float = setting(
+        0.0, "Process noise on the rear axle's lateral force, as a density [N/sqrt(s)] (see "
+        "front_axle_force_std)", low=0.0, high=1.0e6)
 
     def __post_init__(self) -> None:
         for name, n in (("P0", 5), ("Q", 5), ("R", 3)):
@@ -109,6 +125,24 @@ class VehicleStateConfig:
         check_settings(self)
 
 
+_NO_WHEEL_SPEEDS = np.full(4, np.nan)
+#: vx std of the wheel-speed measurement at stand-still (encoder resolution) [m/s].
+WHEEL_SPEED_FLOOR_STD = 0.05
+
+
+def axle_force_noise(params: VehicleParams, config: VehicleStateConfig) -> np.ndarray:
+    """The process noise per ``nominal_dt`` that lateral-force errors of the front and rear axle
+    put on ``[vx, vy, r, ax, ay]``: a force ``F_f`` moves ``vy' `` by ``F_f/m`` and ``r'`` by
+    ``l_f F_f / I_z`` (a rear one by ``F_r/m`` and ``-l_r F_r / I_z``), so the two are
+    correlated and the yaw rate, measured to 0.003 rad/s, tells the filter about vy. A diagonal
+    Q cannot: its vy and r noise are independent."""
+    std_f, std_r = config.front_axle_force_std, config.rear_axle_force_std
+    G = np.zeros((5, 2))
+    G[1] = 1.0 / params.mass
+    G[2] = params.lf / params.yaw_inertia, -params.lr / params.yaw_inertia
+    return config.nominal_dt * G @ np.diag([std_f ** 2, std_r ** 2]) @ G.T
+
+
 class VehicleStateCKF(VehicleStateCore):
     """Vehicle state ``[vx, vy, r, ax, ay]`` by CKF on the paper-004 model (Sec. 4).
 
@@ -133,6 +167,7 @@ class VehicleStateCKF(VehicleStateCore):
         def h(X, inputs):
             return vm.measurement(X, inputs, params)
 
+        self.process_noise = cfg.Q + axle_force_noise(params, cfg)
         self._filter = self._make_filter(f, h)
 
     def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
@@ -140,7 +175,7 @@ class VehicleStateCKF(VehicleStateCore):
         ``__init__`` after ``params``/``config`` are validated). Default: the plain CKF with
         the configured ``Q``, ``R``, ``x0`` and ``P0``."""
         cfg = self.config
-        return CubatureKalmanFilter(f, h, cfg.Q, cfg.R, self._x0(None), cfg.P0)
+        return CubatureKalmanFilter(f, h, self.process_noise, cfg.R, self._x0(None), cfg.P0)
 
     # -- main entry ----------------------------------------------------------------------
     def step(self, t: float, inputs: VehicleInputs, z) -> bool:
@@ -159,13 +194,16 @@ class VehicleStateCKF(VehicleStateCore):
             return False
         t, z, dt = sample
         cfg = self.config
+        measured = inputs
+        if not cfg.wheel_slip_forces:
+            inputs = dataclasses.replace(inputs, wheel_speeds=_NO_WHEEL_SPEEDS)
         if not self.initialised:
-            vx0 = self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None
+            vx0 = self._vx_from_wheels(measured) if cfg.init_vx_from_wheel_speeds else None
             if vx0 is not None:
                 self._filter.reset(self._x0(vx0), cfg.P0)
             self.initialised = True
         else:
-            Q = cfg.Q * (dt / cfg.nominal_dt) if cfg.scale_q_with_dt else self._filter.Q
+            Q = self.process_noise * (dt / cfg.nominal_dt) if cfg.scale_q_with_dt else self._filter.Q
             Q = self._with_extra_vx_noise(Q, dt)
             try:
                 with np.errstate(all="ignore"):
@@ -188,7 +226,31 @@ class VehicleStateCKF(VehicleStateCore):
         if self._reinitialised_after_failure(inputs):
             return False
         self.updates += 1
+        if not cfg.wheel_slip_forces:
+            self._update_speed_from_wheels(measured)
         return True
+
+    def _update_speed_from_wheels(self, inputs: VehicleInputs) -> None:
+        """The mean speed of the undriven wheels (no drive slip) as a measurement of the mean
+        of their forward speeds v_t (Eq. 7), free rolling: ``vx`` at the rear,
+        ``vx cos(delta) + (vy + l_F r) sin(delta)`` at the front (the track terms cancel
+        between left and right). Linear in the state for a given steering angle, so the exact
+        Kalman update; the rolling radius's uncertainty is its variance."""
+        wheels = self.params.undriven_wheels
+        speed = 0.0
+        for i in wheels:
+            speed += float(inputs.wheel_speeds[i])
+        if not math.isfinite(speed):
+            return
+        speed *= self.params.wheel_radius / len(wheels)
+        front = sum(1 for i in wheels if i < 2) / len(wheels)   # share of steered wheels
+        cos_d, sin_d = math.cos(inputs.steer_angle), math.sin(inputs.steer_angle)
+        H = np.array([1.0 - front + front * cos_d, front * sin_d, front * self.params.lf * sin_d, 0.0, 0.0])
+        variance = (self.config.wheel_radius_std * speed) ** 2 + WHEEL_SPEED_FLOOR_STD ** 2
+        x, P = self._filter.x, self._filter.P
+        PHt = P @ H
+        self._filter.correct(np.array([speed - H @ x]), np.array([[H @ PHt + variance]]), PHt[:, None])
+        self.speed_updates += 1
 
     def _vx_after_gap(self, inputs: VehicleInputs) -> Optional[float]:
         vx0 = self._vx_now()

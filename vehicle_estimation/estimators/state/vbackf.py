@@ -366,7 +366,7 @@ class VehicleStateVBACKF(VehicleStateCKF):
         vb.validate()
         self.vb_config = vb
         cfg = self.config
-        return VariationalBayesCKF(f, h, cfg.Q, cfg.R, self._x0(None), cfg.P0, vb=vb)
+        return VariationalBayesCKF(f, h, self.process_noise, cfg.R, self._x0(None), cfg.P0, vb=vb)
 
     def _reinitialised_after_failure(self, inputs: VehicleInputs) -> bool:
         """As the CKF's, and the noise statistics go back to the prior too: a failure may

@@ -141,12 +141,18 @@ class ParameterDeclarations:
         return config
 
     def declare_shared_setting(self, config_type: Any, field_name: str) -> Any:
-        """Declare the ``config_type`` field ``field_name`` as a node-level parameter of that
-        name, with the field's default, documentation and range: for a fact that several nodes
-        must agree on, set once in a params file's ``/**`` section."""
+        """:meth:`declare_setting` for a fact that several nodes must agree on, set once in a
+        params file's ``/**`` section."""
+        return self.declare_setting(config_type, field_name, shared=True)
+
+    def declare_setting(self, config_type: Any, field_name: str, *, shared: bool = False) -> Any:
+        """Declare the bool or float ``config_type`` field ``field_name`` as a node-level
+        parameter of that name, with the field's default, documentation and range."""
         field = next(f for f in dataclasses.fields(config_type) if f.name == field_name)
         default = field.default
-        doc = f"{field.metadata['doc']} (shared by the nodes that use it: set it under /**)"
+        doc = field.metadata['doc']
+        if shared:
+            doc += " (shared by the nodes that use it: set it under /**)"
         if isinstance(default, bool):
             return self.declare_bool(field_name, default, doc)
         return self.declare_float(field_name, default, doc, bounds=field.metadata.get("bounds"))
