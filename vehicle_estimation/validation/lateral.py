@@ -48,7 +48,7 @@ from vehicle_estimation.estimators.registry import StateSettings, build_state_fi
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.validation.stanford import baseline_linear_kf
-from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
+from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params, merge_ros_parameters
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.estimators.common.guard import STAMP_TOLERANCE_S
 
@@ -120,7 +120,7 @@ def shipped_state_settings() -> StateSettings:
     """The state node's tuning in the shipped ``params/estimation.yaml``."""
     with open(params_file("estimation"), encoding="utf-8") as stream:
         shipped = yaml.safe_load(stream)
-    return StateSettings.from_parameters(shipped["vehicle_state"]["ros__parameters"])
+    return StateSettings.from_parameters(merge_ros_parameters(shipped, node="vehicle_state"))
 
 
 def make_core(name: str, vehicle: VehicleParams):
@@ -233,16 +233,16 @@ def _scores(est: dict, truth: dict, start: float) -> dict[str, float]:
         return ea[sel], ra[sel]
 
     b_e, b_r = err("sideslip", truth["sideslip_t"], truth["sideslip"])
-    vy_e, vy_r = err("vy", truth["t"], truth["vy"])
+    t_vy, vy_e, vy_r = metrics.align(est["t"], est["vy"], truth["t"], truth["vy"])
+    sel = t_vy >= start
+    vy_e, vy_r = vy_e[sel], vy_r[sel]
     vx_e, vx_r = err("vx", truth["t"], truth["vx"])
     scores = {"sideslip_rmse_deg": math.degrees(metrics.rmse(b_e, b_r)),
               "vy_mae": metrics.mae(vy_e, vy_r), "vy_rmse": metrics.rmse(vy_e, vy_r),
               "vx_rmse": metrics.rmse(vx_e, vx_r)}
     if "vy_variance" in est:     # is the published vy variance honest? (95 % within 2 sigma)
-        t_vy, e_vy, r_vy = metrics.align(est["t"], est["vy"], truth["t"], truth["vy"])
-        sigma = np.sqrt(np.interp(t_vy, est["t"], est["vy_variance"]))
-        sel = t_vy >= start
-        scores["vy_within_2sigma"] = float(np.mean(np.abs(e_vy[sel] - r_vy[sel]) <= 2.0 * sigma[sel]))
+        sigma = np.sqrt(np.interp(t_vy[sel], est["t"], est["vy_variance"]))
+        scores["vy_within_2sigma"] = float(np.mean(np.abs(vy_e - vy_r) <= 2.0 * sigma))
     return scores
 
 

@@ -126,6 +126,7 @@ class VehicleStateConfig:
 
 
 _NO_WHEEL_SPEEDS = np.full(4, np.nan)
+_VX_ROW = np.array([1.0, 0.0, 0.0, 0.0, 0.0])   # H of a measured vx
 #: vx std of the wheel-speed measurement at stand-still (encoder resolution) [m/s].
 WHEEL_SPEED_FLOOR_STD = 0.05
 
@@ -246,10 +247,7 @@ class VehicleStateCKF(VehicleStateCore):
         front = sum(1 for i in wheels if i < 2) / len(wheels)   # share of steered wheels
         cos_d, sin_d = math.cos(inputs.steer_angle), math.sin(inputs.steer_angle)
         H = np.array([1.0 - front + front * cos_d, front * sin_d, front * self.params.lf * sin_d, 0.0, 0.0])
-        variance = (self.config.wheel_radius_std * speed) ** 2 + WHEEL_SPEED_FLOOR_STD ** 2
-        x, P = self._filter.x, self._filter.P
-        PHt = P @ H
-        self._filter.correct(np.array([speed - H @ x]), np.array([[H @ PHt + variance]]), PHt[:, None])
+        self._correct_linear(H, speed, (self.config.wheel_radius_std * speed) ** 2 + WHEEL_SPEED_FLOOR_STD ** 2)
         self.speed_updates += 1
 
     def _vx_after_gap(self, inputs: VehicleInputs) -> Optional[float]:
@@ -259,6 +257,10 @@ class VehicleStateCKF(VehicleStateCore):
         return vx0
 
     def _correct_speed(self, vx: float, variance: float) -> None:
-        P = self._filter.P
-        self._filter.correct(np.array([vx - self._filter.x[0]]), np.array([[P[0, 0] + variance]]),
-                             P[:, :1].copy())
+        self._correct_linear(_VX_ROW, vx, variance)
+
+    def _correct_linear(self, H: np.ndarray, value: float, variance: float) -> None:
+        """The exact Kalman update with a scalar measurement ``value = H x + noise``."""
+        PHt = self._filter.P @ H
+        self._filter.correct(np.array([value - H @ self._filter.x]), np.array([[H @ PHt + variance]]),
+                             PHt[:, None])
