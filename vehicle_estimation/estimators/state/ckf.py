@@ -125,7 +125,6 @@ class VehicleStateConfig:
         check_settings(self)
 
 
-_NO_WHEEL_SPEEDS = np.full(4, np.nan)
 _VX_ROW = np.array([1.0, 0.0, 0.0, 0.0, 0.0])   # H of a measured vx
 #: vx std of the wheel-speed measurement at stand-still (encoder resolution) [m/s].
 WHEEL_SPEED_FLOOR_STD = 0.05
@@ -163,7 +162,7 @@ class VehicleStateCKF(VehicleStateCore):
 
         def f(X, dt, inputs):
             return vm.transition(X, inputs, params, dt, min_speed=cfg.min_speed,
-                                 max_substep=cfg.max_substep)
+                                 max_substep=cfg.max_substep, slip_forces=cfg.wheel_slip_forces)
 
         def h(X, inputs):
             return vm.measurement(X, inputs, params)
@@ -195,11 +194,8 @@ class VehicleStateCKF(VehicleStateCore):
             return False
         t, z, dt = sample
         cfg = self.config
-        measured = inputs
-        if not cfg.wheel_slip_forces:
-            inputs = dataclasses.replace(inputs, wheel_speeds=_NO_WHEEL_SPEEDS)
         if not self.initialised:
-            vx0 = self._vx_from_wheels(measured) if cfg.init_vx_from_wheel_speeds else None
+            vx0 = self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None
             if vx0 is not None:
                 self._filter.reset(self._x0(vx0), cfg.P0)
             self.initialised = True
@@ -228,7 +224,7 @@ class VehicleStateCKF(VehicleStateCore):
             return False
         self.updates += 1
         if not cfg.wheel_slip_forces:
-            self._update_speed_from_wheels(measured)
+            self._update_speed_from_wheels(inputs)
         return True
 
     def _update_speed_from_wheels(self, inputs: VehicleInputs) -> None:

@@ -315,11 +315,12 @@ def _fallback_fx(inputs: VehicleInputs, fz, params: VehicleParams):
 
 
 def tyre_forces(state, inputs: VehicleInputs, params: VehicleParams, *,
-                min_speed: float = DEFAULT_MIN_SPEED) -> TyreForces:
+                min_speed: float = DEFAULT_MIN_SPEED, slip_forces: bool = True) -> TyreForces:
     """Tyre forces of all four wheels (Eqs. 5-9) for state(s) ``x`` of shape (..., 5).
 
     Vertical loads (Eq. 5) use the accelerations in the state (``ax`` converted to the
-    specific force ``ax + g sin(theta)``, ``ay`` as is). Without valid wheel speeds the
+    specific force ``ax + g sin(theta)``, ``ay`` as is). Without valid wheel speeds, or with
+    ``slip_forces`` False (the wheel speeds are read as a speed elsewhere, not as slip), the
     longitudinal forces follow the fallback of the module docstring.
     """
     x = np.asarray(state, dtype=float)
@@ -329,7 +330,7 @@ def tyre_forces(state, inputs: VehicleInputs, params: VehicleParams, *,
     mass = inputs.mass_or(params)
     alpha, vt = _wheel_velocities(vx, vy, r, delta, params, min_speed)
     fz = _vertical_loads(ax + params.gravity * math.sin(theta), ay, theta, mass, params)
-    if inputs.wheel_speeds_valid:
+    if slip_forces and inputs.wheel_speeds_valid:
         slip = (inputs.wheel_speeds * params.wheel_radius - vt) / np.maximum(np.abs(vt), min_speed)
         fx, fy = _dugoff(slip, alpha, fz, params)
         from_slip = True
@@ -360,7 +361,8 @@ def _force_to_body(delta: float, params: VehicleParams) -> tuple[np.ndarray, np.
     return mx, my
 
 
-def _body_accelerations(x, inputs: VehicleInputs, params: VehicleParams, min_speed: float):
+def _body_accelerations(x, inputs: VehicleInputs, params: VehicleParams, min_speed: float,
+                        slip_forces: bool = True):
     """Eqs. 2-4: model ``ax``, ``ay`` and ``r' = M_z / I_z``; plus whether ``ax`` is known.
 
     ``ax`` is kinematic (includes ``-g sin(theta)``). ``ax_known`` is False in the
@@ -371,7 +373,7 @@ def _body_accelerations(x, inputs: VehicleInputs, params: VehicleParams, min_spe
     Eq. 4: ``M_z = l_F (Fx1 + Fx2) sin d - l_R (Fy3 + Fy4) + l_F (Fy1 + Fy2) cos d
     - (B_F/2)(Fx1 - Fx2) cos d + (B_F/2)(Fy1 - Fy2) sin d - (B_R/2)(Fx3 - Fx4)``.
     """
-    tf = tyre_forces(x, inputs, params, min_speed=min_speed)
+    tf = tyre_forces(x, inputs, params, min_speed=min_speed, slip_forces=slip_forces)
     mass = inputs.mass_or(params)
     mx, my = _force_to_body(float(inputs.steer_angle), params)
     sums = tf.fx @ mx + tf.fy @ my
@@ -385,7 +387,8 @@ def _body_accelerations(x, inputs: VehicleInputs, params: VehicleParams, min_spe
 
 def state_derivative(x, inputs: VehicleInputs, params: VehicleParams, *,
                      min_speed: float = DEFAULT_MIN_SPEED,
-                     accel_time_constant: float = ACCEL_TIME_CONSTANT) -> np.ndarray:
+                     accel_time_constant: float = ACCEL_TIME_CONSTANT,
+                     slip_forces: bool = True) -> np.ndarray:
     """Continuous model ``x' = f(x, u)`` of Eq. 10 for ``x = [vx, vy, r, ax, ay]`` (..., 5).
 
     Rows 0-2 are Eq. 1 with ``ax``, ``ay`` from Eqs. 2-3 and ``M_z`` from Eq. 4. Rows 3-4
@@ -394,7 +397,7 @@ def state_derivative(x, inputs: VehicleInputs, params: VehicleParams, *,
     without wheel speeds or torques, row 0 uses the state ``ax`` and row 3 is 0.
     """
     x = np.asarray(x, dtype=float)
-    ax_m, ay_m, rdot, ax_known = _body_accelerations(x, inputs, params, min_speed)
+    ax_m, ay_m, rdot, ax_known = _body_accelerations(x, inputs, params, min_speed, slip_forces)
     vx, vy, r, ax, ay = (x[..., i] for i in range(5))
     ax_used = ax_m if ax_known else ax
     out = np.empty(np.broadcast(vx, ax_m).shape + (5,))
@@ -408,7 +411,7 @@ def state_derivative(x, inputs: VehicleInputs, params: VehicleParams, *,
 
 def transition(x, inputs: VehicleInputs, params: VehicleParams, dt: float, *,
                min_speed: float = DEFAULT_MIN_SPEED,
-               max_substep: float = DEFAULT_MAX_SUBSTEP) -> np.ndarray:
+               max_substep: float = DEFAULT_MAX_SUBSTEP, slip_forces: bool = True) -> np.ndarray:
     """Discrete process model ``x_{k+1} = F(x_k, u_{k+1}, dt)`` used by the filters.
 
     Vectorised: ``x`` may be ``(5,)`` or a batch ``(n, 5)`` (cubature points). ``dt`` is
@@ -424,7 +427,7 @@ def transition(x, inputs: VehicleInputs, params: VehicleParams, dt: float, *,
     h = dt / n
     ax_known = True
     for _ in range(n):
-        ax_m, ay_m, rdot, ax_known = _body_accelerations(x, inputs, params, min_speed)
+        ax_m, ay_m, rdot, ax_known = _body_accelerations(x, inputs, params, min_speed, slip_forces)
         vx = x[..., 0]
         r = x[..., 2]
         ax_used = ax_m if ax_known else x[..., 3]
@@ -434,7 +437,7 @@ def transition(x, inputs: VehicleInputs, params: VehicleParams, dt: float, *,
         x[..., 2] += h * rdot
         x[..., 3] = ax_used
         x[..., 4] = ay_m
-    ax_m, ay_m, _, ax_known = _body_accelerations(x, inputs, params, min_speed)
+    ax_m, ay_m, _, ax_known = _body_accelerations(x, inputs, params, min_speed, slip_forces)
     if ax_known:
         x[..., 3] = ax_m
     x[..., 4] = ay_m
