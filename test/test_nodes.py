@@ -253,7 +253,7 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
         Parameter("speed_fallback", value=fallback), Parameter("initial_vx", value=20.0)])
     h = Harness(node)
     try:
-        # Slope and mass upstream too: a missing one alone makes the sideslip unconverged.
+        # Slope and mass upstream too, as a full pipeline has them.
         topics_in = [(Imu, topics.IMU), (JointState, topics.JOINT_STATES),
                      (Vector3Stamped, topics.ROAD_SLOPE_STAMPED), (Vector3Stamped, topics.MASS_STAMPED)]
         if fallback:

@@ -78,6 +78,8 @@ class StateEstimator(Protocol):
     #: Extra white-noise density on vx [(m/s^2)^2 s] the node adds while it knows the
     #: acceleration input is worse than the model assumes (no slope, dead reckoning).
     extra_vx_noise_density: float
+    #: Relative cornering-stiffness uncertainty whose vy error the published P carries.
+    tyre_stiffness_std: float
 
     @property
     def x(self) -> np.ndarray: ...

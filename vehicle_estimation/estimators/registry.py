@@ -141,6 +141,7 @@ class StateSettings:
     wheel_radius_std: float = 0.01
     front_axle_force_std: float = 0.0
     rear_axle_force_std: float = 0.0
+    tyre_stiffness_std: float = 0.0
 
     @classmethod
     def defaults(cls) -> "StateSettings":
@@ -199,19 +200,25 @@ def _paper004_config(settings: StateSettings) -> Any:
                                              rear_axle_force_std=settings.rear_axle_force_std)
 
 
+def _with_model_error(core: StateEstimator, settings: StateSettings) -> StateEstimator:
+    """``core`` publishing the model error of ``settings`` (every filter alike)."""
+    core.tyre_stiffness_std = settings.tyre_stiffness_std
+    return core
+
+
 def _ckf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:
     from vehicle_estimation.estimators.state.ckf import VehicleStateCKF
-    return VehicleStateCKF(vehicle, _paper004_config(settings))
+    return _with_model_error(VehicleStateCKF(vehicle, _paper004_config(settings)), settings)
 
 
 def _vbackf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:
     from vehicle_estimation.estimators.state.vbackf import VehicleStateVBACKF
-    return VehicleStateVBACKF(vehicle, _paper004_config(settings), config)
+    return _with_model_error(VehicleStateVBACKF(vehicle, _paper004_config(settings), config), settings)
 
 
 def _aoukf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:
     from vehicle_estimation.estimators.state.aoukf import VehicleStateAOUKF
-    return VehicleStateAOUKF(vehicle, config, correction)
+    return _with_model_error(VehicleStateAOUKF(vehicle, config, correction), settings)
 
 
 STATE_FILTERS: dict[str, StateFilter] = {

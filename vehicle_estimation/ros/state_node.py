@@ -73,6 +73,7 @@ from vehicle_estimation.estimators.state.gabpnn import (
     load_correction,
 )
 from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
+from vehicle_estimation.estimators.state.core import ModelErrorSettings
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -143,7 +144,14 @@ class StateNode(EstimatorNode):
         self.settings = StateSettings(
             tuple(self.p0_diag), tuple(self.q_diag), tuple(self.r_diag), self.initial_vx, self.init_from_wheels,
             **{name: self.declare_setting(VehicleStateConfig, name) for name in (
-                "wheel_slip_forces", "wheel_radius_std", "front_axle_force_std", "rear_axle_force_std")})
+                "wheel_slip_forces", "wheel_radius_std", "front_axle_force_std", "rear_axle_force_std")},
+            tyre_stiffness_std=self.declare_setting(ModelErrorSettings, "tyre_stiffness_std"))
+        # Fallbacks whose error the published variance carries, so the sideslip may still be
+        # flagged converged: the level road (its grade error is vx process noise) and, where the
+        # variance carries a stiffness error, the params' mass (a mass off by some share puts
+        # the rear slip angle off by that share, as a stiffness does).
+        self._fallbacks_in_variance = frozenset(
+            {"road slope"} | ({"mass"} if self.settings.tyre_stiffness_std > 0.0 else set()))
         self.filter_config = self._declare_filter_config()
         self.correction: BPCorrection | None = None
         if self.method.output_correction:
@@ -371,7 +379,7 @@ class StateNode(EstimatorNode):
         self.publish(self.pub_state, msg)
         if abs(x[0]) >= self.min_dynamic_speed:
             beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
-            converged = not self.missing and self._vx_measured
+            converged = self._vx_measured and not (self.missing - self._fallbacks_in_variance)
         else:
             # Below the speed where the tyre model means anything (the core regularises slip
             # below ~3 m/s) the sideslip is kinematic: no tyre slip, beta = atan(lr tan(delta) / L).

@@ -11,13 +11,16 @@ The paper-004 CKF / VB-ACKF (:mod:`.ckf`, :mod:`.vbackf`) and the paper-002 AO-U
 * take a direct vx measurement (:meth:`VehicleStateCore.update_speed`) where there are no
   wheel speeds, and an extra vx process noise (:attr:`extra_vx_noise_density`) that the node
   sets while an input is unknown;
-* report the sideslip of Eq. 14 of paper 004 with its first-order variance.
+* report the sideslip of Eq. 14 of paper 004 with its first-order variance;
+* publish a covariance that carries the tyre-stiffness error the filters do not model
+  (:class:`ModelErrorSettings`).
 
 A core satisfies :class:`~vehicle_estimation.estimators.interfaces.StateEstimator`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from abc import ABC, abstractmethod
 from collections import Counter
@@ -25,11 +28,25 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from vehicle_estimation.contract.settings import setting
 from vehicle_estimation.contract.vehicle import VehicleParams
 from vehicle_estimation.estimators.common.guard import StepGuard
 from vehicle_estimation.estimators.common.sigma_points import AdditiveNoiseFilter, valid_moments
 from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelErrorSettings:
+    """Model errors that no filter represents and that every core adds to its published
+    covariance (:attr:`VehicleStateCore.P`); the estimates do not change."""
+
+    tyre_stiffness_std: float = setting(
+        0.0, "Relative uncertainty of the tyres' cornering stiffness, which every filter takes as "
+        "exact [-]. The rear axle's lateral force is fixed by the measured ay and yaw rate, so a "
+        "stiffness off by this share moves its slip angle, and vy with it, by this share of the "
+        "rear axle's slip velocity vy - l_r r: (std (vy - l_r r))^2 is added to the published vy "
+        "variance (0 = paper: the filter's own covariance)", low=0.0, high=1.0)
 
 
 class VehicleStateCore(StepGuard, ABC):
@@ -68,6 +85,8 @@ class VehicleStateCore(StepGuard, ABC):
         #: owner sets it while an input is unknown (the node: no slope estimate, so the grade's
         #: g sin(theta) acts on vx as a correlated acceleration error).
         self.extra_vx_noise_density = 0.0
+        #: :attr:`ModelErrorSettings.tyre_stiffness_std`, set by the owner (the registry's builders).
+        self.tyre_stiffness_std = 0.0
 
     # -- helpers -------------------------------------------------------------------------
     def _x0(self, vx0: Optional[float]) -> np.ndarray:
@@ -172,7 +191,13 @@ class VehicleStateCore(StepGuard, ABC):
 
     @property
     def P(self) -> np.ndarray:
-        return self._filter.P
+        """The covariance of :attr:`x` as published: the filter's, plus on vy the variance of
+        a tyre stiffness off by :attr:`tyre_stiffness_std` (:class:`ModelErrorSettings`)."""
+        P = np.array(self._filter.P, dtype=float)
+        if self.tyre_stiffness_std > 0.0:
+            x = self._filter.x
+            P[1, 1] += (self.tyre_stiffness_std * (x[1] - self.params.lr * x[2])) ** 2
+        return P
 
     @property
     def sideslip(self) -> float:
@@ -182,7 +207,7 @@ class VehicleStateCore(StepGuard, ABC):
     @property
     def sideslip_variance(self) -> float:
         """First-order variance of :attr:`sideslip` from the ``(vx, vy)`` block of ``P`` [rad^2]."""
-        return vm.sideslip_variance(self.x, self._filter._P)
+        return vm.sideslip_variance(self.x, self.P)
 
     def status(self) -> dict[str, str]:
         """What this filter adds to ``/diagnostics`` (none by default)."""
