@@ -94,6 +94,10 @@ VX_FROM_WHEELS = "wheel speeds"
 VX_FROM_SPEED = "vehicle/speed (fallback: no wheel speeds)"
 VX_DEAD_RECKONED = "dead reckoning from ax (no wheel speeds, no vehicle/speed): drifts"
 
+#: The upstream inputs by the names /diagnostics gives them when missing ("missing: ...").
+SLOPE_INPUT = "road slope"
+MASS_INPUT = "mass"
+
 #: How long the filter waits for wheel speeds to start from before it starts from initial_vx [s].
 WHEEL_WAIT_S = 1.0
 #: A road grade varies over a hill's length: at highway speed ~5 s. The correlation time of the
@@ -151,7 +155,7 @@ class StateNode(EstimatorNode):
         # variance carries a stiffness error, the params' mass (a mass off by some share puts
         # the rear slip angle off by that share, as a stiffness does).
         self._fallbacks_in_variance = frozenset(
-            {"road slope"} | ({"mass"} if self.settings.tyre_stiffness_std > 0.0 else set()))
+            {SLOPE_INPUT} | ({MASS_INPUT} if self.settings.tyre_stiffness_std > 0.0 else set()))
         self.filter_config = self._declare_filter_config()
         self.correction: BPCorrection | None = None
         if self.method.output_correction:
@@ -311,7 +315,7 @@ class StateNode(EstimatorNode):
         if not math.isfinite(steer):
             steer = 0.0
         self._steer = steer
-        slope = self._upstream(self.slope, t, math.nan, "road slope")
+        slope = self._upstream(self.slope, t, math.nan, SLOPE_INPUT)
         # Without the slope the filter assumes a level road and adds the grade's acceleration
         # error as process noise, so the variance says the estimate knows less.
         self.core.extra_vx_noise_density = (
@@ -321,7 +325,7 @@ class StateNode(EstimatorNode):
             steer_angle=steer,
             wheel_speeds=wheels,
             slope=0.0 if math.isnan(slope) else slope,
-            mass=self._upstream(self.mass, t, self.vehicle.mass, "mass"),
+            mass=self._upstream(self.mass, t, self.vehicle.mass, MASS_INPUT),
         )
         if not self.core.initialised and self.init_from_wheels and not np.all(np.isfinite(wheels)):
             # Starting from initial_vx while the car may be moving costs seconds of transient

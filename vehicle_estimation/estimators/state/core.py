@@ -195,7 +195,7 @@ class VehicleStateCore(StepGuard, ABC):
         a tyre stiffness off by :attr:`tyre_stiffness_std` (:class:`ModelErrorSettings`)."""
         P = np.array(self._filter.P, dtype=float)
         if self.tyre_stiffness_std > 0.0:
-            x = self._filter.x
+            x = self.x          # the published estimate (the AO-UKF's after its output correction)
             P[1, 1] += (self.tyre_stiffness_std * (x[1] - self.params.lr * x[2])) ** 2
         return P
 
