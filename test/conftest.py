@@ -6,29 +6,18 @@ session; child processes (node executables, the launcher) inherit the environmen
 
 from __future__ import annotations
 
-import fcntl
 import os
 import tempfile
 from pathlib import Path
 
-_LOCK_HANDLE = None
+_DOMAIN_CLAIM = None
 
 
 def _claim_domain_id() -> int:
-    global _LOCK_HANDLE
-    lock_dir = Path(tempfile.gettempdir())
-    start = os.getpid() % 100
-    for offset in range(100):
-        domain = 1 + (start + offset) % 100
-        handle = open(lock_dir / f"vehicle_estimation_ros_domain_{domain}.lock", "w")  # noqa: SIM115
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        _LOCK_HANDLE = handle
-        return domain
-    raise RuntimeError("no free ROS_DOMAIN_ID in 1..100 for this test run")
+    global _DOMAIN_CLAIM
+    from vehicle_estimation.launcher.processes import claim_domain_id
+    _DOMAIN_CLAIM = claim_domain_id(range(1, 101))
+    return _DOMAIN_CLAIM.domain
 
 
 if "VEHICLE_ESTIMATION_TEST_DOMAIN" not in os.environ:

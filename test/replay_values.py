@@ -25,6 +25,36 @@ STRIDE = 25
 RTOL, ATOL = 1e-6, 1e-8
 
 
+
+def recorded_estimates(bag: Path) -> dict[str, list[tuple[int, bytes]]]:
+    """Every estimate topic of a recorded replay: its (log time, CDR bytes) in order.
+
+    ``/diagnostics`` is left out: it is published on a timer of the node clock, whose calls
+    fall between messages wherever the executor happens to be.
+    """
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    out: dict[str, list[tuple[int, bytes]]] = {}
+    with AnyReader([Path(bag)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        for conn, log_ns, data in reader.messages():
+            if conn.topic.startswith(COMPARED_PREFIX):
+                out.setdefault(conn.topic, []).append((log_ns, bytes(data)))
+    return out
+
+
+def first_difference(a: dict[str, list], b: dict[str, list]) -> str | None:
+    """Where two :func:`recorded_estimates` differ first (None: byte for byte the same)."""
+    if a.keys() != b.keys():
+        return f"topics {sorted(a.keys() ^ b.keys())} are in only one of them"
+    for topic in sorted(a):
+        if len(a[topic]) != len(b[topic]):
+            return f"{topic}: {len(a[topic])} against {len(b[topic])} messages"
+        for i, (x, y) in enumerate(zip(a[topic], b[topic])):
+            if x != y:
+                return f"{topic}: message {i} differs ({'log time' if x[0] != y[0] else 'bytes'})"
+    return None
+
 def _flatten(value, out: list[float]) -> None:
     if isinstance(value, (bool, np.bool_)):
         out.append(float(value))

@@ -34,9 +34,9 @@ def drive(tmp_path_factory) -> Path:
     return bag
 
 
-def _replay(bag: Path, out: Path) -> subprocess.CompletedProcess:
+def _replay(bag: Path, out: Path, *extra: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(bag),
-                           "--record", str(out), "--quiet"],
+                           "--record", str(out), "--quiet", *extra],
                           capture_output=True, text=True, timeout=600)
 
 
@@ -115,3 +115,17 @@ def test_estimates_match_the_recorded_reference(replays):
         replay_values.save(values, REFERENCE)
     moved = replay_values.differences(values, replay_values.load(REFERENCE))
     assert not moved, f"estimates differ from {REFERENCE.name}:\n" + "\n".join(moved)
+
+
+def test_in_process_replay_records_the_same_bytes(drive, replays, tmp_path):
+    """``replay --in-process``: the same nodes without DDS, the same estimates byte for byte,
+    with the same log times, and the same lossless summary."""
+    import replay_values
+
+    out = tmp_path / "estimates"
+    proc = _replay(drive, out, "--in-process")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "lossless: True" in proc.stdout
+    dds = replay_values.recorded_estimates(replays[0][0])
+    assert len(dds) >= 10
+    assert replay_values.first_difference(dds, replay_values.recorded_estimates(out)) is None

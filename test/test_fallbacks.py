@@ -27,17 +27,24 @@ ESTIMATES = (topics.ODOMETRY, topics.IMU_COMPENSATED, topics.IMU_BIAS, topics.FU
 
 
 @pytest.fixture(scope="module")
-def replayed(tmp_path_factory) -> Path:
+def bare(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("fallbacks")
     full = write_bag(simulate(scenario_by_name("short")), tmp / "full")
-    bare = rewrite_bag(full, tmp / "imu_and_can", start_at_s=0.0, drop_topics=[topics.GNSS],
+    return rewrite_bag(full, tmp / "imu_and_can", start_at_s=0.0, drop_topics=[topics.GNSS],
                        drop_joints=list(topics.WHEEL_JOINTS))
-    out = tmp / "estimates"
-    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(bare), "--record", str(out),
-                           "--quiet"], capture_output=True, text=True, timeout=900)
+
+
+def _replay(bag: Path, out: Path, *extra: str) -> Path:
+    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(bag), "--record", str(out),
+                           "--quiet", *extra], capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "lossless: True" in proc.stdout
     return out
+
+
+@pytest.fixture(scope="module")
+def replayed(bare, tmp_path_factory) -> Path:
+    return _replay(bare, tmp_path_factory.mktemp("fallbacks_dds") / "estimates")
 
 
 def _read(bag: Path) -> tuple[dict[str, int], dict[str, dict[str, str]], dict[str, np.ndarray]]:
@@ -95,3 +102,14 @@ def test_the_fallbacks_estimate_what_they_should(replayed):
     last_half = mass[:, 0] >= mass[0, 0] + 0.5 * (mass[-1, 0] - mass[0, 0])
     assert mass[0, 1] == pytest.approx(1000.0)               # the prior ...
     assert np.max(np.abs(mass[last_half, 1] / truth - 1.0)) < 0.10   # ... left for the truth
+
+
+def test_in_process_replay_records_the_same_bytes(bare, replayed, tmp_path):
+    """The other sensor set of the in-process check (``test_end_to_end`` has the full one):
+    every fallback runs, and ``--in-process`` still records what the DDS replay records."""
+    import replay_values
+
+    out = _replay(bare, tmp_path / "estimates", "--in-process")
+    dds = replay_values.recorded_estimates(replayed)
+    assert len(dds) >= 10
+    assert replay_values.first_difference(dds, replay_values.recorded_estimates(out)) is None

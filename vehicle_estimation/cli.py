@@ -6,7 +6,10 @@ Subcommands::
     vehicle-estimation simulate --scenario NAME --out BAG
     vehicle-estimation run [--vehicle FILE] [--params FILE ...] [--namespace NS] [--remap FROM:=TO ...]
     vehicle-estimation replay BAG --record OUT [--vehicle FILE] [--params FILE] [--remap FROM:=TO ...]
-                                                        BAG: MCAP/sqlite3 rosbag2 or ROS 1 .bag
+                          [--in-process]                BAG: MCAP/sqlite3 rosbag2 or ROS 1 .bag
+    vehicle-estimation batch BAG_OR_DIR... --out DIR [--workers N] [--scheduler ADDRESS] [--resume]
+                          [--calibrate --mass-from FILE.csv]
+                                                        replay and report many bags on Dask
     vehicle-estimation report BAG [--out DIR]
     vehicle-estimation inspect BAG [--vehicle V] [--params P ...] [--remap FROM:=TO ...] [--json]
                                                         topics of a bag and what each node will do
@@ -31,7 +34,8 @@ Subcommands::
     vehicle-estimation truck-data | train-mass-transformer | train-gabpnn
                                                         data and training of the shipped models
 
-``run`` and ``replay`` start every node as its own OS process. Ctrl-C or SIGTERM stops them
+``run`` and ``replay`` start every node as its own OS process (``replay --in-process`` and
+``batch`` run the same nodes in one process per bag, without DDS). Ctrl-C or SIGTERM stops them
 all; the children also die with the launcher if it is killed (no orphans).
 """
 
@@ -64,6 +68,8 @@ COMMANDS: dict[str, Command] = {
     "params": Command("ros.paramdoc", "the parameter reference of every node (see: params --help)", own_argv=True),
     "run": Command("launcher.live", "start every node (live)"),
     "replay": Command("launcher.replay", "play a bag through every node and record the estimates"),
+    "batch": Command("fleet.batch", "replay and report many bags in parallel on Dask distributed "
+                                    "(pip install -e '.[fleet]')"),
     "experiment": Command("launcher.experiment", "contrast experiment of a paper: one drive, two strategies"),
     "report": Command("evaluation.report", "metrics and plots of estimates against ground truth "
                                            "(see: report --help)", own_argv=True),

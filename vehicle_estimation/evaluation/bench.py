@@ -12,7 +12,9 @@ Sections (``--sections``, default all):
 ``pipeline``
     A ``--minutes`` (default 30) simulated drive (IMU 200 Hz, CAN 100 Hz, GNSS 10 Hz) replayed
     through the four nodes, each in its own process: real-time factor, CPU seconds per node,
-    resident memory of each node after 1 simulated minute and at the end.
+    resident memory of each node after 1 simulated minute and at the end. Then the same bag
+    through the same nodes in one process without DDS (``replay --in-process``): its real-time
+    factor on one core and the ratio to the DDS replay.
 ``live``
     ``--live-seconds`` of the same drive published at real-time rate to the nodes in live mode
     (no replay sync): CPU share of each node, and the latency from an input's publication to
@@ -40,6 +42,7 @@ import numpy as np
 
 TARGETS = {
     "replay_rt": 20.0,          # replay >= 20x real time, four processes on 2 cores
+    "in_process_rt": 50.0,      # replay --in-process >= 50x real time on one core
     "cpu_share": 0.25,          # all nodes together < 25 % of one core at real time
     "latency_p99_ms": 5.0,      # p99 input -> output latency
     "memory_growth": 0.05,      # < 5 % growth of resident memory, minute 1 -> minute 30
@@ -348,8 +351,15 @@ def run_pipeline(minutes: float, workdir: Path) -> dict[str, Any]:
 
     print(f"  replaying {minutes:g} minutes through the four node processes ...", file=sys.stderr, flush=True)
     stats = replay(bag, None, factory, progress=sys.stderr.isatty(), tick_callback=on_tick)
-    return {"bag_s": stats.bag_s, "wall_s": stats.wall_s, "rt_factor": stats.bag_s / stats.wall_s,
-            "lossless": stats.lossless, "nodes": final, "rss_minute_1": samples.get("minute_1", {})}
+    result = {"bag_s": stats.bag_s, "wall_s": stats.wall_s, "rt_factor": stats.bag_s / stats.wall_s,
+              "lossless": stats.lossless, "nodes": final, "rss_minute_1": samples.get("minute_1", {})}
+    print(f"  replaying {minutes:g} minutes through the same nodes in this process ...", file=sys.stderr, flush=True)
+    cpu0 = time.process_time()
+    stats = replay(bag, None, lambda overrides: NodeGroup(_params_files(), overrides=overrides),
+                   progress=sys.stderr.isatty(), in_process=True)
+    result["in_process"] = {"wall_s": stats.wall_s, "cpu_s": time.process_time() - cpu0,
+                            "rt_factor": stats.bag_s / stats.wall_s, "lossless": stats.lossless}
+    return result
 
 
 def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
@@ -481,6 +491,16 @@ def format_report(result: dict[str, Any]) -> str:
         ok = "met" if worst < TARGETS["memory_growth"] else "missed"
         lines += ["", f"Largest memory growth from minute 1 to the end: {100 * worst:+.1f} % "
                       f"(target < {100 * TARGETS['memory_growth']:g} %: {ok})", ""]
+        ip = p.get("in_process")
+        if ip:
+            cpu_dds = sum(v["cpu_s"] for v in p["nodes"].values())
+            cpu = (f"; CPU {ip['cpu_s']:.1f} s against {cpu_dds:.1f} s in the four node processes "
+                   f"({ip['cpu_s'] / cpu_dds:.2f}x)" if cpu_dds > 0 else "")
+            ok = "met" if ip["rt_factor"] >= TARGETS["in_process_rt"] else "missed"
+            lines += ["## The same replay in one process (`replay --in-process`)", "",
+                      f"{p['bag_s']:.0f} s of bag in {ip['wall_s']:.1f} s: **{ip['rt_factor']:.1f}x real time** on "
+                      f"one core (target >= {TARGETS['in_process_rt']:g}x: {ok}); lossless: {ip['lossless']}; "
+                      f"{ip['rt_factor'] / p['rt_factor']:.2f}x the DDS replay's factor{cpu}", ""]
     if "live" in result:
         lv = result["live"]
         ok = "met" if lv["cpu_share_total"] < TARGETS["cpu_share"] else "missed"

@@ -3,19 +3,28 @@
 Each node runs as ``python -m vehicle_estimation.ros.<node> --ros-args ...`` in its own
 process. Children get ``PR_SET_PDEATHSIG`` so that they die with the launcher even if the
 launcher itself is killed with SIGKILL: no orphan keeps publishing into a vehicle stack.
+
+A replay started without ``ROS_DOMAIN_ID`` runs its nodes in a ROS domain of its own
+(:func:`claim_domain_id`): a DDS replay owns ``/clock`` and the sync topics of its domain, so two
+replays in one domain stall each other, and a replay in a vehicle stack's domain would drive its
+clock. The first free id of :data:`REPLAY_DOMAINS` is locked exclusively with a lock file (held
+until the replay ends, released by the OS if it dies); the test suite claims its domain the same
+way, so tests and replays never share one either.
 """
 
 from __future__ import annotations
 
 import ctypes
+import fcntl
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import IO, Sequence
 
 from vehicle_estimation.ros import PIPELINE, NodeSpec
 
@@ -117,3 +126,39 @@ class NodeGroup:
                     n.process.wait(max(0.0, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     pass
+
+
+#: Linux leaves domains 0..101 outside the ephemeral port range (ROS 2 "The ROS_DOMAIN_ID"). The
+#: low ids are the ones people pick for their stacks; replays take the upper half.
+REPLAY_DOMAINS = range(51, 102)
+
+
+class DomainClaim:
+    """An exclusively locked domain id; :meth:`release` (or process exit) frees it."""
+
+    def __init__(self, domain: int, handle: IO[str]) -> None:
+        self.domain, self._handle = domain, handle
+
+    def release(self) -> None:
+        if self._handle is not None:
+            self._handle.close()
+            self._handle = None
+
+
+def claim_domain_id(candidates: range = REPLAY_DOMAINS, start: int | None = None) -> DomainClaim:
+    """Lock the first free id of ``candidates``, trying from ``start`` (default: by process id,
+    so that concurrent claims seldom try the same id first)."""
+    lock_dir = Path(tempfile.gettempdir())
+    n = len(candidates)
+    first = (os.getpid() if start is None else start) % n
+    for offset in range(n):
+        domain = candidates[(first + offset) % n]
+        handle = open(lock_dir / f"vehicle_estimation_ros_domain_{domain}.lock", "w")  # noqa: SIM115
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        return DomainClaim(domain, handle)
+    raise RuntimeError(f"no free ROS domain id in {candidates.start}..{candidates.stop - 1}: "
+                       "set ROS_DOMAIN_ID for this replay")

@@ -43,6 +43,7 @@ from tqdm import tqdm
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.io.msgconvert import jazzy_typestore, ros1_to_cdr
+from vehicle_estimation.launcher.processes import claim_domain_id
 from vehicle_estimation.launcher.replay_driver import (
     ReplayDriver,
     ReplayError,
@@ -118,16 +119,61 @@ class ReplayStats:
         return all(self.processed.get(t, -1) == n for t, n in self.read.items())
 
 
+class _DdsReplay:
+    """The node processes of ``group``, played to over DDS by a :class:`ReplayDriver`."""
+
+    def __init__(self, group: Any, namespace: str, writer: Writer | None, typestore: Any,
+                 stall_timeout: float) -> None:
+        self.group = group
+        self.stall_timeout = stall_timeout
+        rclpy.init(args=["--ros-args", "-p", "use_sim_time:=false"])
+        self.driver = ReplayDriver(namespace, [s.name for s in PIPELINE], writer, typestore)
+        self.executor = make_executor()
+        self.executor.add_node(self.driver)
+        group.start()
+
+    def add_input(self, topic: str, type_name: str) -> str:
+        return self.driver.raw_publisher(topic, type_name).topic_name
+
+    def handshake(self, t_start_ns: int, timeout: float) -> None:
+        handshake(self.driver, self.executor, self.group, t_start_ns, timeout)
+
+    def publish(self, topic: str, data: bytes) -> None:
+        self.driver.publish_raw(topic, data)
+
+    def tick(self, tick_ns: int) -> None:
+        tick(self.driver, self.executor, self.group, tick_ns, self.stall_timeout)
+
+    def finish(self) -> None:
+        check_clock_owner(self.driver)      # a replay shorter than discovery: one last look
+
+    def close(self, stats: ReplayStats) -> None:
+        self.group.stop()
+        driver = self.driver
+        for topic in stats.read:
+            counts = [ack["rx"][topic] + driver.rx_offsets.get(name, Counter())[topic]
+                      for name, ack in driver.acks.items() if topic in ack["rx"]]
+            stats.processed[topic] = min(counts) if counts else 0
+        stats.recorded = Counter(driver.recorded)
+        stats.respawns = sum(n.restarts for n in self.group.nodes)
+        self.executor.shutdown()
+        driver.destroy_node()
+        rclpy.try_shutdown()
+
+
 def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
            tick_s: float = DEFAULT_TICK_S, progress: bool = True, startup_timeout: float = 60.0,
            stall_timeout: float = 60.0,
            tick_callback: Callable[[float], None] | None = None,
-           remap: dict[str, str] | None = None) -> ReplayStats:
+           remap: dict[str, str] | None = None, in_process: bool = False) -> ReplayStats:
     """Play ``bag`` through nodes started by ``group_factory(overrides)``; record to ``out``.
 
     ``remap``: ``{FROM: TO}`` pairs as ``--remap FROM:=TO`` gives them, the contract topic on
     one side and the bag's on the other (:func:`vehicle_estimation.contract.topics.bag_to_contract`;
     a leading '/' does not matter).
+
+    ``in_process``: the same nodes, with the same parameters, in this process without DDS
+    (:mod:`.replay_in_process`); the recorded estimates are the same bytes.
 
     ``tick_callback(bag_seconds_done)`` is called after every tick (the benchmark samples
     memory with it).
@@ -145,7 +191,6 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     # never inherits another run's estimate (that would break replay determinism).
     state_dir = Path(tempfile.mkdtemp(prefix="vehicle_estimation_replay_"))
     overrides.setdefault("mass", {})["persist.path"] = str(state_dir / "mass_state.json")
-    group = group_factory(overrides)
     writer = None
     if out is not None:
         if out.exists():
@@ -153,16 +198,31 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
         if out.suffix == ".bag":
             raise ReplayError(f"output bag {out}: a rosbag2 directory must not end in '.bag' (it would be "
                               f"read as a ROS 1 bag file); name it e.g. {out.with_suffix('')}")
+    if in_process:
+        for values in overrides.values():
+            values["use_sim_time"] = "false"     # the bus sets the clocks, not /clock
+            values["sync.enabled"] = "false"
+    group = group_factory(overrides)
+    if out is not None:
         writer = Writer(out, version=8, storage_plugin=StoragePlugin.MCAP)
         writer.open()
-    rclpy.init(args=["--ros-args", "-p", "use_sim_time:=false"])
-    driver = ReplayDriver(namespace, [s.name for s in PIPELINE], writer, typestore)
-    executor = make_executor()
-    executor.add_node(driver)
-    group.start()
+    engine: Any = None
     wall0 = time.monotonic()
     bar = None
+    claim = None
     try:
+        if not in_process and "ROS_DOMAIN_ID" not in os.environ:
+            # A domain of its own: another replay, or the vehicle stack, must not share our
+            # /clock and sync topics. The nodes inherit it with the environment.
+            claim = claim_domain_id()
+            os.environ["ROS_DOMAIN_ID"] = str(claim.domain)
+            say(f"replay: in ROS domain {claim.domain} (set ROS_DOMAIN_ID to choose one)")
+        if in_process:
+            from vehicle_estimation.launcher.replay_in_process import InProcessReplay
+            engine = InProcessReplay(group, namespace, writer, typestore)
+        else:
+            engine = _DdsReplay(group, namespace, writer, typestore, stall_timeout)
+        wall0 = time.monotonic()
         with AnyReader([bag], default_typestore=typestore) as reader:
             play_ids, truth_ids = _topic_plan(reader.connections, remap, input_topics, truth_topics)
             play = [c for c in reader.connections if c.id in play_ids]
@@ -170,8 +230,9 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
             if not play:
                 raise ReplayError(f"{bag}: none of the input topics {sorted(input_topics)} is in the bag "
                                   "(use --remap FROM:=TO for a bag with other topic names)")
+            played_as = {}
             for conn in play:
-                driver.raw_publisher(play_ids[conn.id], conn.msgtype)
+                played_as[play_ids[conn.id]] = engine.add_input(play_ids[conn.id], conn.msgtype)
             truth_conns = {}
             if writer is not None:
                 for conn in truth:
@@ -187,7 +248,7 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                 def to_cdr(conn_id: int, data: Any) -> bytes:
                     return ros1_to_cdr(reader.deserialize(data, types[conn_id]), types[conn_id], typestore)
             t_start, t_end = reader.start_time, reader.end_time
-            handshake(driver, executor, group, t_start, startup_timeout)
+            engine.handshake(t_start, startup_timeout)
             bar = _progress_bar(progress, (t_end - t_start) * 1e-9)
             tick_ns = int(round(tick_s * 1e9))
             pauses = _pauses_from_environment()
@@ -199,41 +260,38 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
                     continue
                 while timestamp >= next_tick:
                     pauses = _pause_if_asked(pauses, (next_tick - t_start) * 1e-9)
-                    tick(driver, executor, group, next_tick, stall_timeout)
+                    engine.tick(next_tick)
                     stats.ticks += 1
                     next_tick += tick_ns
                     if tick_callback is not None:
                         tick_callback((next_tick - t_start) * 1e-9)
                     bar.update(min((next_tick - t_start) * 1e-9, bar.total) - bar.n)
                 topic = play_ids[conn.id]
-                driver.publish_raw(topic, to_cdr(conn.id, data))
-                stats.read[driver.raw_publishers[topic].topic_name] += 1
+                engine.publish(topic, to_cdr(conn.id, data))
+                stats.read[played_as[topic]] += 1
             # Flush: advance past the end by the deepest release delay plus two ticks.
             flush_end = t_end + int((len(PIPELINE) + 2) * tick_ns)
             while next_tick <= flush_end:
-                tick(driver, executor, group, next_tick, stall_timeout)
+                engine.tick(next_tick)
                 stats.ticks += 1
                 next_tick += tick_ns
-            check_clock_owner(driver)      # a replay shorter than discovery: one last look
+            engine.finish()
             bar.update(bar.total - bar.n)
             stats.bag_s = (t_end - t_start) * 1e-9
     finally:
         stats.wall_s = time.monotonic() - wall0
         if bar is not None:
             bar.close()
-        group.stop()
-        for topic in stats.read:
-            counts = [ack["rx"][topic] + driver.rx_offsets.get(name, Counter())[topic]
-                      for name, ack in driver.acks.items() if topic in ack["rx"]]
-            stats.processed[topic] = min(counts) if counts else 0
-        stats.recorded = Counter(driver.recorded)
-        stats.respawns = sum(n.restarts for n in group.nodes)
+        if engine is not None:
+            engine.close(stats)
+        else:
+            group.stop()
         shutil.rmtree(state_dir, ignore_errors=True)
-        executor.shutdown()
-        driver.destroy_node()
-        rclpy.try_shutdown()
         if writer is not None:
             writer.close()
+        if claim is not None:
+            os.environ.pop("ROS_DOMAIN_ID", None)
+            claim.release()
     return stats
 
 
@@ -296,6 +354,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tick", type=float, default=DEFAULT_TICK_S, help="replay tick of bag time [s]")
     p.add_argument("--log-dir", default=None, help="write each node's log here")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--in-process", action="store_true",
+                   help="run the nodes in this process without DDS (same estimates, several times faster; "
+                        "node logs go to this process's stderr)")
     add_remap_option(p, "play a bag topic as a contract topic, ROS-style CONTRACT:=BAG_TOPIC (e.g. "
                         "imu/data:=/sensors/imu; the reverse order is taken too)")
     add_node_options(p)
@@ -317,7 +378,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         stats = replay(Path(args.bag), record, lambda ov: node_group(args, ov, log_dir),
                        namespace=args.namespace, tick_s=args.tick, progress=not args.quiet,
-                       remap=dict(args.remap))
+                       remap=dict(args.remap), in_process=args.in_process)
     except ReplayError as exc:
         print(f"replay failed: {exc}", file=sys.stderr)
         return 1

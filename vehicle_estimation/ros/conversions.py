@@ -10,7 +10,7 @@ import numpy as np
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.common.rotations import gravity_on_body_y, yaw_of_quat
-from vehicle_estimation.ros.runtime.stamps import stamp_to_sec
+from vehicle_estimation.ros.stamps import stamp_to_sec
 
 NAN = float("nan")
 

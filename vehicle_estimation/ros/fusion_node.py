@@ -29,7 +29,7 @@ from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
-from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S, sec_to_stamp
+from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_stamp
 from vehicle_estimation.ros.runtime.upstream import companion
 
 FUSION_GRADE = topics.FUSION_GRADE

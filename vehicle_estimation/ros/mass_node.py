@@ -67,7 +67,7 @@ from vehicle_estimation.ros.persistence import StateFileError, load_state, save_
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError
 from vehicle_estimation.ros.runtime.spin import run_node
-from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S
+from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S
 from vehicle_estimation.ros.runtime.upstream import (
     FusionImuBias,
     UpstreamHistory,

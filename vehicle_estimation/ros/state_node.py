@@ -80,7 +80,7 @@ from vehicle_estimation.ros.conversions import (
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError
 from vehicle_estimation.ros.runtime.spin import run_node
-from vehicle_estimation.ros.runtime.stamps import STAMP_TOLERANCE_S, sec_to_stamp
+from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_stamp
 from vehicle_estimation.ros.runtime.upstream import (
     FusionImuBias,
     UpstreamHistory,

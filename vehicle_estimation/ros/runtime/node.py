@@ -4,7 +4,9 @@ The nodes are thin: they turn messages into arrays, hand them to a core in
 ``vehicle_estimation.estimators`` and turn the result back into messages. What surrounds that
 lives in one module per job: ``parameters`` (declaring with descriptors), ``input_queue``
 (stamp order and input checks), ``upstream`` (other nodes' values "as of" a stamp), ``sync``
-(the lock-step replay protocol), ``diagnostics`` and ``spin`` (the executable's loop).
+(the lock-step replay protocol), ``diagnostics`` and ``spin`` (the executable's loop). Created with ``transport=`` an
+:class:`~vehicle_estimation.ros.runtime.in_process.InProcessBus`, a node takes its endpoints
+from the bus instead of rclpy (``replay --in-process``): the handlers are the same code.
 
 Time: estimators step on header stamps, never wall time. A stamp that jumps back by more than
 ``time_jump_reset_s`` (a bag played in a loop, a restarted player) resets the node's estimators
@@ -24,10 +26,11 @@ from vehicle_estimation.contract import topics
 from vehicle_estimation.ros.cdr import raw_reader
 from vehicle_estimation.ros.conversions import imu_arrays, imu_rejection, speed_reading
 from vehicle_estimation.ros.runtime.diagnostics import NodeHealth
+from vehicle_estimation.ros.runtime.in_process import InProcessBus, TickRelease
 from vehicle_estimation.ros.runtime.input_queue import StampOrderedInputs
 from vehicle_estimation.ros.runtime.parameters import ParameterDeclarations
 from vehicle_estimation.ros.runtime.qos import output_qos, sensor_qos
-from vehicle_estimation.ros.runtime.stamps import stamp_ns, stamp_to_sec
+from vehicle_estimation.ros.stamps import stamp_ns, stamp_to_sec
 from vehicle_estimation.ros.runtime.sync import ReplaySyncResponder
 from vehicle_estimation.ros.runtime.upstream import FusionImuBias, UpstreamHistory
 
@@ -35,8 +38,9 @@ from vehicle_estimation.ros.runtime.upstream import FusionImuBias, UpstreamHisto
 class EstimatorNode(ParameterDeclarations, Node):
     """Base class of the four estimator nodes. See the module docstring."""
 
-    def __init__(self, node_name: str, **node_kwargs: Any) -> None:
+    def __init__(self, node_name: str, *, transport: InProcessBus | None = None, **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
+        self.transport = transport
         self.health = NodeHealth()
         self._publishers_by_topic: dict[str, Any] = {}
         self._subscriptions_by_topic: dict[str, Any] = {}
@@ -65,9 +69,17 @@ class EstimatorNode(ParameterDeclarations, Node):
             "frozen sensor (a real IMU's noise never repeats; a hung driver republishes); 0: off", 0, 100000)
         self.inputs = StampOrderedInputs(self, self.time_jump_reset_s, self.frozen_imu_samples)
 
+        self._sync: ReplaySyncResponder | TickRelease | None = None
+        if transport is not None:
+            transport.attach(self)
+            self._diag_pub = transport.create_publisher(DiagnosticArray, self.resolve_topic_name("/diagnostics"))
+            transport.create_timer(self.diagnostics_period, self._publish_diagnostics)
+            self._sync = transport.create_release(
+                release=self.inputs.release, on_clock_jump=self._on_replay_clock_jump,
+                release_delay_s=self.release_delay, time_jump_reset_s=self.time_jump_reset_s)
+            return
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(self.diagnostics_period, self._publish_diagnostics)
-        self._sync: ReplaySyncResponder | None = None
         if self.sync_enabled:
             self._sync = ReplaySyncResponder(
                 self, rx=self.health.rx, tx=self.health.tx, publishers=self._publishers_by_topic,
@@ -77,7 +89,10 @@ class EstimatorNode(ParameterDeclarations, Node):
 
     # ------------------------------------------------------------------ topics
     def publisher(self, msg_type: Any, topic: str) -> Any:
-        pub = self.create_publisher(msg_type, topic, output_qos(self.output_depth))
+        if self.transport is not None:
+            pub = self.transport.create_publisher(msg_type, self.resolve_topic_name(topic))
+        else:
+            pub = self.create_publisher(msg_type, topic, output_qos(self.output_depth))
         self._publishers_by_topic[pub.topic_name] = pub
         return pub
 
@@ -101,7 +116,10 @@ class EstimatorNode(ParameterDeclarations, Node):
             rx[name] += 1
             deliver(name, msg, read)
 
-        sub = self.create_subscription(msg_type, topic, on_message, qos, raw=view is not None)
+        if self.transport is not None:
+            sub = self.transport.create_subscription(self.resolve_topic_name(topic), on_message, raw=view is not None)
+        else:
+            sub = self.create_subscription(msg_type, topic, on_message, qos, raw=view is not None)
         holder["topic"] = sub.topic_name
         rx[sub.topic_name] += 0
         self._subscriptions_by_topic[sub.topic_name] = sub

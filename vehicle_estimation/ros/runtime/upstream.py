@@ -16,7 +16,7 @@ import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 
 from vehicle_estimation.estimators.common.rotations import quat_to_rotmat
-from vehicle_estimation.ros.runtime.stamps import sec_to_stamp, stamp_to_sec
+from vehicle_estimation.ros.stamps import sec_to_stamp, stamp_to_sec
 
 #: An upstream value older than this, at the stamp it is wanted for, is missing [s].
 STALE_AFTER_S = 1.0

@@ -1,0 +1,1 @@
+"""Fleet-scale replay: many bags, in parallel, on a distributed engine (``batch``)."""

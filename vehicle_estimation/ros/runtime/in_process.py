@@ -1,0 +1,202 @@
+"""In-process topics: the estimator nodes in one process, exchanging messages without DDS.
+
+A replay through DDS pays for every message several times: serialisation, the middleware's
+discovery and transport, one executor wake-up per message and node, and the lock-step
+protocol's sync/ack round trips (``sync``). :class:`InProcessBus` stands in for the
+middleware when the same node classes run in one process (``replay --in-process``): a node
+created with ``transport=bus`` asks the bus, not rclpy, for its publishers, subscriptions and
+diagnostics timer, and the replay drives it tick by tick with :meth:`InProcessBus.tick`.
+
+It keeps what makes the DDS replay deterministic, so both give the same bytes:
+
+* A subscription gets what it would get from rclpy: the serialised CDR bytes when it asked
+  for ``raw`` (the bag's bytes as they are, a node's message serialised once per publish),
+  else a message object.
+* Messages are delivered in publication order per topic; across topics the order does not
+  matter, because every node queues its inputs in stamp order (``input_queue``) and looks up
+  other nodes' estimates "as of" a stamp (``upstream``).
+* At tick T every node releases what is stamped before ``T - sync.release_delay`` and the
+  messages it publishes reach their subscribers before the next tick: the quiescence that the
+  DDS protocol waits for is here a drained queue.
+
+Node clocks run on the replay's ticks (ROS time override, as ``/clock`` would set it), and
+timers (``/diagnostics``) fire on them.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from collections import defaultdict, deque
+from typing import Any, Callable
+
+from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.time import Time
+
+Callback = Callable[[Any], None]
+
+
+class _Message:
+    """One publication: the object and/or its CDR bytes, each made at most once."""
+
+    __slots__ = ("msg_type", "_obj", "_data")
+
+    def __init__(self, msg_type: Any, obj: Any = None, data: bytes | None = None) -> None:
+        self.msg_type, self._obj, self._data = msg_type, obj, data
+
+    @property
+    def data(self) -> bytes:
+        if self._data is None:
+            self._data = serialize_message(self._obj)
+        return self._data
+
+    @property
+    def obj(self) -> Any:
+        if self._obj is None:
+            self._obj = deserialize_message(self._data, self.msg_type)
+        return self._obj
+
+
+class InProcessPublisher:
+    """What :meth:`rclpy.node.Node.create_publisher` returns, as far as the nodes use it."""
+
+    def __init__(self, bus: InProcessBus, msg_type: Any, topic_name: str) -> None:
+        self.bus, self.msg_type, self.topic_name = bus, msg_type, topic_name
+
+    def publish(self, msg: Any) -> None:
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            self.bus.post(self.topic_name, _Message(self.msg_type, data=bytes(msg)))
+        else:
+            self.bus.post(self.topic_name, _Message(self.msg_type, obj=msg))
+
+    def get_subscription_count(self) -> int:
+        return len(self.bus.subscribers[self.topic_name])
+
+
+class InProcessSubscription:
+    def __init__(self, bus: InProcessBus, topic_name: str, callback: Callback, raw: bool) -> None:
+        self.bus, self.topic_name, self.callback, self.raw = bus, topic_name, callback, raw
+
+    def deliver(self, message: _Message) -> None:
+        self.callback(message.data if self.raw else message.obj)
+
+    def get_publisher_count(self) -> int:
+        return len(self.bus.publishers[self.topic_name])
+
+
+class _Timer:
+    __slots__ = ("period_ns", "callback", "next_ns")
+
+    def __init__(self, period_ns: int, callback: Callable[[], None], next_ns: int) -> None:
+        self.period_ns, self.callback, self.next_ns = period_ns, callback, next_ns
+
+
+class TickRelease:
+    """A node's side of an in-process tick: the same release rule as the DDS protocol's
+    :class:`~vehicle_estimation.ros.runtime.sync.ReplaySyncResponder`, without the messages."""
+
+    def __init__(self, *, release: Callable[[int], None], on_clock_jump: Callable[[str], None],
+                 release_delay_s: float, time_jump_reset_s: float) -> None:
+        self.release = release
+        self.on_clock_jump = on_clock_jump
+        self.release_delay_ns = int(round(release_delay_s * 1e9))
+        self.time_jump_reset_s = time_jump_reset_s
+        self._last_tick = -math.inf
+
+    def tick(self, tick_ns: int) -> None:
+        tick = tick_ns * 1e-9
+        if tick < self._last_tick - self.time_jump_reset_s:
+            self.on_clock_jump(f"replay clock jumped back to {tick:.3f}: resetting estimators")
+        self._last_tick = tick
+        self.release(tick_ns - self.release_delay_ns)
+
+    # The DDS responder's hooks: an input or an upstream estimate arrived. Here nothing waits
+    # for counts; the bus releases on its own ticks.
+    def try_complete(self) -> None:
+        pass
+
+    def schedule_reack(self) -> None:
+        pass
+
+
+class InProcessBus:
+    """Topics, timers and the tick loop of nodes living in one process (see the module doc)."""
+
+    def __init__(self) -> None:
+        self.publishers: dict[str, list[InProcessPublisher]] = defaultdict(list)
+        self.subscribers: dict[str, list[InProcessSubscription]] = defaultdict(list)
+        self.nodes: list[Any] = []
+        self._releases: list[TickRelease] = []
+        self._timers: list[tuple[int, int, _Timer]] = []     # heap of (next_ns, order, timer)
+        self._timer_order = itertools.count()
+        self._queue: deque[tuple[str, _Message]] = deque()
+        self.now_ns = 0
+
+    # ------------------------------------------------------------ what nodes ask for
+    def attach(self, node: Any) -> None:
+        """Run ``node``'s ROS clock on the bus's ticks."""
+        clock = node.get_clock()
+        clock._set_ros_time_is_active(True)
+        clock.set_ros_time_override(Time(nanoseconds=self.now_ns))
+        self.nodes.append(node)
+
+    def create_publisher(self, msg_type: Any, topic_name: str) -> InProcessPublisher:
+        pub = InProcessPublisher(self, msg_type, topic_name)
+        self.publishers[topic_name].append(pub)
+        return pub
+
+    def create_subscription(self, topic_name: str, callback: Callback, *, raw: bool) -> InProcessSubscription:
+        sub = InProcessSubscription(self, topic_name, callback, raw)
+        self.subscribers[topic_name].append(sub)
+        return sub
+
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> _Timer:
+        period_ns = max(1, int(round(period_s * 1e9)))
+        timer = _Timer(period_ns, callback, self.now_ns + period_ns)
+        heapq.heappush(self._timers, (timer.next_ns, next(self._timer_order), timer))
+        return timer
+
+    def create_release(self, **kwargs: Any) -> TickRelease:
+        release = TickRelease(**kwargs)
+        self._releases.append(release)
+        return release
+
+    # ------------------------------------------------------------ what the replay does
+    def post(self, topic_name: str, message: _Message) -> None:
+        self._queue.append((topic_name, message))
+
+    def publish_bytes(self, topic_name: str, msg_type: Any, data: bytes) -> None:
+        """A message from outside the nodes (the bag), delivered at once."""
+        self.post(topic_name, _Message(msg_type, data=data))
+        self.drain()
+
+    def drain(self) -> None:
+        """Deliver every queued message, including what the deliveries publish in turn."""
+        queue, subscribers = self._queue, self.subscribers
+        while queue:
+            topic_name, message = queue.popleft()
+            for sub in subscribers.get(topic_name, ()):
+                sub.deliver(message)
+
+    def set_time(self, t_ns: int) -> None:
+        self.now_ns = t_ns
+        now = Time(nanoseconds=t_ns)
+        for node in self.nodes:
+            node.get_clock().set_ros_time_override(now)
+        while self._timers and self._timers[0][0] <= t_ns:
+            _, order, timer = heapq.heappop(self._timers)
+            timer.callback()
+            self.drain()
+            # Like an rcl timer after a clock jump: the next period from now, no burst of
+            # missed calls.
+            timer.next_ns = max(timer.next_ns + timer.period_ns, t_ns + 1)
+            heapq.heappush(self._timers, (timer.next_ns, order, timer))
+
+    def tick(self, tick_ns: int) -> None:
+        """Advance every node to ``tick_ns``: clocks and timers, then each node's release, in
+        pipeline order; every message published on the way is delivered before this returns."""
+        self.set_time(tick_ns)
+        for release in self._releases:
+            release.tick(tick_ns)
+            self.drain()
