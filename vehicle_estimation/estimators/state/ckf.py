@@ -46,10 +46,14 @@ class CubatureKalmanFilter(SigmaPointKalmanFilter):
         Q: process-noise covariance added per :meth:`predict` (override with ``Q=``).
         R: measurement-noise covariance (``m x m``).
         x0, P0: initial mean and covariance.
+        h_affine: ``(H, c)`` of an affine ``h``, for closed-form moments (see
+            :class:`~vehicle_estimation.estimators.common.sigma_points.SigmaPointKalmanFilter`).
     """
 
-    def __init__(self, f: Callable, h: Callable, Q, R, x0, P0, *, vectorized: bool = True):
-        super().__init__(f, h, Q, R, x0, P0, CubaturePoints(np.size(x0)), vectorized=vectorized)
+    def __init__(self, f: Callable, h: Callable, Q, R, x0, P0, *, vectorized: bool = True,
+                 h_affine: Optional[Callable] = None):
+        super().__init__(f, h, Q, R, x0, P0, CubaturePoints(np.size(x0)), vectorized=vectorized,
+                         h_affine=h_affine)
 
 
 # ----------------------------------------------------------------------------------------
@@ -168,6 +172,8 @@ class VehicleStateCKF(VehicleStateCore):
             return vm.measurement(X, inputs, params)
 
         self.process_noise = cfg.Q + axle_force_noise(params, cfg)
+        # The IMU measurement is affine in the state: its moments in closed form, not by points.
+        self._h_affine = lambda inputs: vm.measurement_affine(inputs, params)
         self._filter = self._make_filter(f, h)
 
     def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
@@ -175,7 +181,7 @@ class VehicleStateCKF(VehicleStateCore):
         ``__init__`` after ``params``/``config`` are validated). Default: the plain CKF with
         the configured ``Q``, ``R``, ``x0`` and ``P0``."""
         cfg = self.config
-        return CubatureKalmanFilter(f, h, self.process_noise, cfg.R, self._x0(None), cfg.P0)
+        return CubatureKalmanFilter(f, h, self.process_noise, cfg.R, self._x0(None), cfg.P0, h_affine=self._h_affine)
 
     # -- main entry ----------------------------------------------------------------------
     def step(self, t: float, inputs: VehicleInputs, z) -> bool:

@@ -151,8 +151,8 @@ class VariationalBayesCKF(CubatureKalmanFilter):
     """
 
     def __init__(self, f: Callable, h: Callable, Q, R, x0, P0, *,
-                 vb: Optional[VBConfig] = None, vectorized: bool = True):
-        super().__init__(f, h, Q, R, x0, P0, vectorized=vectorized)
+                 vb: Optional[VBConfig] = None, vectorized: bool = True, h_affine: Optional[Callable] = None):
+        super().__init__(f, h, Q, R, x0, P0, vectorized=vectorized, h_affine=h_affine)
         self.vb = VBConfig() if vb is None else vb
         self.vb.validate()
         if not (is_positive_definite(self.R) and np.allclose(self.R, self.R.T)):
@@ -234,7 +234,13 @@ class VariationalBayesCKF(CubatureKalmanFilter):
 
     # -- variational measurement update ---------------------------------------------------
     def _residual_second_moment(self, z: np.ndarray, x: np.ndarray, P: np.ndarray, args) -> np.ndarray:
-        """``B = E_N(x,P)[(z - h(x))(z - h(x))^T]`` by the cubature rule ("adjustment matrix")."""
+        """``B = E_N(x,P)[(z - h(x))(z - h(x))^T]`` by the cubature rule ("adjustment matrix"),
+        in closed form for an affine ``h``: ``e e^T + H P H^T`` with ``e = z - H x - c``."""
+        if self.h_affine is not None:
+            H, c = self.h_affine(*args)
+            e = z - H @ x - c
+            B = np.outer(e, e) + H @ P @ H.T
+            return 0.5 * (B + B.T)
         Z = self._apply(self.h, self.sigma_points(x, P), *args)
         e = z - Z
         B = self.points.covariance(e, e)
@@ -273,6 +279,10 @@ class VariationalBayesCKF(CubatureKalmanFilter):
             # prediction once, then only that B is finite and P_zz factorises.
             if not (math.isfinite(dof_pred) and is_positive_definite(scale_pred)):
                 raise _NumericalFailure
+            if self.h_affine is not None and self.vb.tolerance == 0.0:
+                H, c = self.h_affine(*args)
+                self._iterate_affine(z, innovation, Czz, Pxz, x_pred, P_pred, dof, scale_pred, H, c)
+                return innovation
             with np.errstate(all="ignore"):
                 for i in range(self.vb.iterations):
                     B = self._residual_second_moment(z, x_i, P_i, args)
@@ -297,6 +307,33 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         except (_NumericalFailure, np.linalg.LinAlgError):
             self._fallback(innovation, Czz, Pxz, x_pred, P_pred, dof_pred, scale_pred)
         return innovation
+
+    def _iterate_affine(self, z, innovation, Czz, Pxz, x_pred, P_pred, dof, scale_pred, H, c) -> None:
+        """The iterations of :meth:`update` for an affine ``h = H x + c`` and a fixed ``N``: the same
+        arithmetic, step for step, as the general loop with :meth:`_residual_second_moment` and
+        :meth:`correct` (so the same numbers), with the per-iteration checks that only guard
+        against non-finite values done once at the end, where a NaN or inf would still show.
+        Raises :class:`_NumericalFailure` or ``LinAlgError`` as the general loop does."""
+        Ht = H.T
+        P_i = P_pred
+        e = z - H @ x_pred - c
+        kind = self.vb.r_estimate
+        with np.errstate(all="ignore"):
+            for _ in range(self.vb.iterations):
+                B = np.outer(e, e) + H @ P_i @ Ht
+                scale = scale_pred + 0.5 * (B + B.T)
+                Pzz = Czz + self._point_estimate(dof, scale, kind)
+                np.linalg.cholesky(Pzz)          # LinAlgError: not positive definite
+                K = np.linalg.solve(Pzz, Pxz.T).T
+                P = P_pred - K @ Pzz @ K.T
+                x_i = x_pred + K @ innovation
+                P_i = 0.5 * (P + P.T)
+                e = z - H @ x_i - c
+        if not (np.isfinite(x_i).all() and np.isfinite(P_i).all() and np.isfinite(scale).all()):
+            raise _NumericalFailure
+        self._x, self._P, self._dof, self._scale = x_i, P_i, dof, scale
+        self.last_gain, self.last_innovation, self.last_innovation_covariance = K, innovation, Pzz
+        self.last_iterations = self.vb.iterations
 
     def _fallback(self, innovation, Czz, Pxz, x_pred, P_pred, dof_pred, scale_pred) -> None:
         """Plain CKF correction with the last valid noise estimate; noise statistics = prediction."""
@@ -366,7 +403,8 @@ class VehicleStateVBACKF(VehicleStateCKF):
         vb.validate()
         self.vb_config = vb
         cfg = self.config
-        return VariationalBayesCKF(f, h, self.process_noise, cfg.R, self._x0(None), cfg.P0, vb=vb)
+        return VariationalBayesCKF(f, h, self.process_noise, cfg.R, self._x0(None), cfg.P0, vb=vb,
+                                   h_affine=self._h_affine)
 
     def _reinitialised_after_failure(self, inputs: VehicleInputs) -> bool:
         """As the CKF's, and the noise statistics go back to the prior too: a failure may

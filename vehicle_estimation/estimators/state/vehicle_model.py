@@ -458,6 +458,17 @@ def measurement(x, inputs: VehicleInputs, params: VehicleParams) -> np.ndarray:
     return out
 
 
+def measurement_affine(inputs: VehicleInputs, params: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, c)`` with :func:`measurement` ``= H x + c``: the IMU measurement is affine in the
+    state, so the filters take its moments in closed form (a test checks the identity)."""
+    return _MEASUREMENT_H, np.array([params.gravity * math.sin(float(inputs.slope)), 0.0, 0.0])
+
+
+_MEASUREMENT_H = np.zeros((3, 5))
+_MEASUREMENT_H[0, 3] = _MEASUREMENT_H[1, 4] = _MEASUREMENT_H[2, 2] = 1.0
+_MEASUREMENT_H.setflags(write=False)
+
+
 def sideslip(x) -> float:
     """Vehicle sideslip ``beta = arctan(vy / vx)`` (Eq. 14) [rad].
 
