@@ -109,3 +109,17 @@ def test_two_dds_replays_side_by_side_take_a_domain_each(fleet, tmp_path):
         line = next(ln for ln in stderr.splitlines() if "in ROS domain" in ln)
         domains.add(line.split("in ROS domain")[1].split()[0])
     assert len(domains) == 2
+
+
+def test_batch_runs_on_a_running_scheduler(fleet, tmp_path):
+    """``--scheduler ADDRESS``: the bags go to a cluster that someone else started (here a
+    local one, as ``dask scheduler`` / ``dask worker`` would be on other machines)."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        out = tmp_path / "out"
+        proc = _batch(str(fleet / "drive_3"), "--out", str(out), "--scheduler", cluster.scheduler_address)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ok"] == 1 and summary["workers"] is None
+    assert "the cluster's workers" in (out / "summary.md").read_text()

@@ -120,7 +120,7 @@ class FusionNode(EstimatorNode):
         cov = None
         if msg.position_covariance_type != NavSatFix.COVARIANCE_TYPE_UNKNOWN:
             c = np.array(msg.position_covariance, dtype=float).reshape(3, 3)
-            if np.all(np.isfinite(c)) and np.all(np.diag(c) > 0.0):
+            if np.isfinite(c).all() and np.all(np.diag(c) > 0.0):
                 cov = c
         if not self.ekf.update_gnss(t, enu, cov):
             self.reject("gnss:rejected_by_filter")
@@ -173,7 +173,7 @@ class FusionNode(EstimatorNode):
     def publish_odometry(self, t: float) -> None:
         ekf = self.ekf
         p, v_body, q = ekf.position_enu, ekf.velocity_body, ekf.quaternion
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v_body)) and np.all(np.isfinite(q))):
+        if not (np.isfinite(p).all() and np.isfinite(v_body).all() and np.isfinite(q).all()):
             self.reject("fusion:non_finite_state")
             self.note_event("fusion state became non-finite: resetting")
             self.reset_estimators()

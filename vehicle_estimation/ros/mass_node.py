@@ -190,7 +190,7 @@ class MassNode(EstimatorNode):
         if math.isfinite(total):
             self.brake_torque, self.brake_t = max(total, 0.0), t
         undriven = reading.wheel_speeds[self.undriven_wheels]
-        if np.all(np.isfinite(undriven)):
+        if np.isfinite(undriven).all():
             v = float(np.mean(undriven)) * self.vehicle.wheel_radius
             self.window.add_wheel_speed(t, v)
             self.wheel_speed = (t, v)

@@ -327,7 +327,7 @@ class StateNode(EstimatorNode):
             slope=0.0 if math.isnan(slope) else slope,
             mass=self._upstream(self.mass, t, self.vehicle.mass, MASS_INPUT),
         )
-        if not self.core.initialised and self.init_from_wheels and not np.all(np.isfinite(wheels)):
+        if not self.core.initialised and self.init_from_wheels and not np.isfinite(wheels).all():
             # Starting from initial_vx while the car may be moving costs seconds of transient
             # (and a wrong slope and mass downstream): wait up to WHEEL_WAIT_S for the wheels.
             if self._first_imu_t is None:
@@ -351,7 +351,7 @@ class StateNode(EstimatorNode):
         if self.core.reinitialisations != reinitialisations:
             self.note_event(f"vehicle-state filter {self.core.last_event}")
         # vx is measured while both rear wheel speeds are there (the filter reads them).
-        rear_wheels_measured = bool(np.all(np.isfinite(wheels[2:])))
+        rear_wheels_measured = bool(np.isfinite(wheels[2:]).all())
         if self.speed_fallback:
             self._update_speed_fallback(t, rear_wheels_measured)
         # Without a speed measurement vx integrates the accelerometer and drifts without bound,
@@ -363,7 +363,7 @@ class StateNode(EstimatorNode):
 
     def publish_state(self, t: float) -> None:
         x, P = np.asarray(self.core.x, dtype=float), np.asarray(self.core.P, dtype=float)
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        if not (np.isfinite(x).all() and np.isfinite(P).all()):
             self.reject("state:non_finite")
             self.note_event("vehicle-state filter became non-finite: re-initialising")
             self.core.reset()

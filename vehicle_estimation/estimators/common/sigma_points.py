@@ -60,7 +60,7 @@ def sqrt_psd(P: np.ndarray) -> np.ndarray:
 
 def is_positive_definite(M: np.ndarray) -> bool:
     """Finite and Cholesky-factorisable."""
-    if not np.all(np.isfinite(M)):
+    if not np.isfinite(M).all():
         return False
     try:
         np.linalg.cholesky(M)
@@ -73,7 +73,7 @@ def valid_moments(x: np.ndarray, P: np.ndarray) -> bool:
     """Finite mean and positive-definite covariance. Absurd inputs (a model driven at
     thousands of m/s) can leave a finite P that rounding has made indefinite (negative
     variances) or make a factorisation fail: a numerical failure like a NaN."""
-    return bool(np.all(np.isfinite(x))) and is_positive_definite(P)
+    return bool(np.isfinite(x).all()) and is_positive_definite(P)
 
 
 # ----------------------------------------------------------------------------------------

@@ -459,7 +459,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
                 Wc = np.asarray(covariance, dtype=float).reshape(3, 3)
             except (TypeError, ValueError):
                 Wc = None
-            if Wc is None or not np.all(np.isfinite(Wc)) or np.any(np.diag(Wc) <= 0):
+            if Wc is None or not np.isfinite(Wc).all() or np.any(np.diag(Wc) <= 0):
                 z = None
             else:
                 W = 0.5 * (Wc + Wc.T)

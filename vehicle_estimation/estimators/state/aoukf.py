@@ -264,7 +264,7 @@ class VehicleStateAOUKF(VehicleStateCore):
             if vx_wheels is not None:
                 obs[2] = vx_wheels
         select = np.nonzero(np.isfinite(obs))[0]
-        if not np.all(np.isfinite(z)):
+        if not np.isfinite(z).all():
             self.rejected["nonfinite_measurement"] += 1
             self.last_event = "non-finite measurement"
         if select.size == 0:
@@ -290,7 +290,7 @@ class VehicleStateAOUKF(VehicleStateCore):
         if self.correction is None:
             return
         out = self.correction.step(t, self._filter.x - x_prior)
-        self._correction_output = out if np.all(np.isfinite(out)) else np.zeros(3)
+        self._correction_output = out if np.isfinite(out).all() else np.zeros(3)
 
     def _correct_speed(self, vx: float, variance: float) -> None:
         f = self._filter

@@ -122,7 +122,7 @@ class VehicleStateConfig:
             m = np.asarray(getattr(self, name), dtype=float)
             if m.shape != (n, n):
                 raise ValueError(f"{name} must be {n}x{n}, got shape {m.shape}")
-            if not np.all(np.isfinite(m)) or not np.allclose(m, m.T):
+            if not np.isfinite(m).all() or not np.allclose(m, m.T):
                 raise ValueError(f"{name} must be finite and symmetric")
             if not is_positive_definite(m):
                 raise ValueError(f"{name} must be positive definite")
@@ -214,13 +214,13 @@ class VehicleStateCKF(VehicleStateCore):
             except np.linalg.LinAlgError:
                 self._filter._x[:] = np.nan   # handled as a numerical failure below
         self.t = t
-        if not np.all(np.isfinite(z)):
+        if not np.isfinite(z).all():
             if self._reinitialised_after_failure(inputs):
                 return False
             self.rejected["nonfinite_measurement"] += 1
             self.last_event = "non-finite measurement"
             return False
-        if np.all(np.isfinite(self._filter._x)) and np.all(np.isfinite(self._filter._P)):
+        if np.isfinite(self._filter._x).all() and np.isfinite(self._filter._P).all():
             try:
                 with np.errstate(all="ignore"):
                     self._filter.update(z, inputs)

@@ -98,7 +98,7 @@ class VehicleStateCore(StepGuard, ABC):
     def _vx_from_wheels(self, inputs: VehicleInputs) -> Optional[float]:
         """Mean speed of the :attr:`_speed_wheels` times the wheel radius; None unless all are finite."""
         ws = inputs.wheel_speeds[self._speed_wheels]
-        if np.all(np.isfinite(ws)):
+        if np.isfinite(ws).all():
             return float(np.mean(ws) * self.params.wheel_radius)
         return None
 

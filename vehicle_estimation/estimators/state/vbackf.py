@@ -255,7 +255,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         if select is not None:
             raise ValueError("the variational update takes every measurement channel (select=None)")
         z = np.asarray(z, dtype=float).reshape(self.m)
-        if not np.all(np.isfinite(z)):
+        if not np.isfinite(z).all():
             self.rejected_measurements += 1
             self.last_iterations = 0
             return np.full(self.m, np.nan)
@@ -267,7 +267,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         with np.errstate(all="ignore"):
             z_hat, Czz, Pxz = self.measurement_moments(*args)
             innovation = z - z_hat
-        if not (np.all(np.isfinite(innovation)) and np.all(np.isfinite(Czz)) and np.all(np.isfinite(Pxz))):
+        if not (np.isfinite(innovation).all() and np.isfinite(Czz).all() and np.isfinite(Pxz).all()):
             self.rejected_measurements += 1
             self.last_iterations = 0
             return innovation
@@ -286,7 +286,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
             with np.errstate(all="ignore"):
                 for i in range(self.vb.iterations):
                     B = self._residual_second_moment(z, x_i, P_i, args)
-                    if not np.all(np.isfinite(B)):
+                    if not np.isfinite(B).all():
                         raise _NumericalFailure
                     scale = scale_pred + B
                     R_i = self._point_estimate(dof, scale, self.vb.r_estimate)
@@ -295,7 +295,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
                         raise _NumericalFailure
                     self._x, self._P = x_pred, P_pred
                     self.correct(innovation, Pzz, Pxz)
-                    if not (np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P))):
+                    if not (np.isfinite(self._x).all() and np.isfinite(self._P).all()):
                         raise _NumericalFailure
                     x_i, P_i = self._x, self._P
                     converged = (i > 0 and self.vb.tolerance > 0.0 and
@@ -349,7 +349,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
                 R = self.R0
             try:
                 self.correct(innovation, Czz + R, Pxz)
-                ok = bool(np.all(np.isfinite(self._x)) and np.all(np.isfinite(self._P)))
+                ok = bool(np.isfinite(self._x).all() and np.isfinite(self._P).all())
             except np.linalg.LinAlgError:
                 ok = False
         if not ok:  # not even the plain correction: keep the prediction

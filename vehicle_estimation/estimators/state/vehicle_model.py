@@ -135,7 +135,7 @@ class VehicleInputs:
 
     @property
     def wheel_speeds_valid(self) -> bool:
-        return bool(np.all(np.isfinite(self.wheel_speeds)))
+        return bool(np.isfinite(self.wheel_speeds).all())
 
     @property
     def torques_valid(self) -> bool:
@@ -143,7 +143,7 @@ class VehicleInputs:
         if self.drive_torque is not None:
             ok = ok and math.isfinite(self.drive_torque)
         if self.brake_torques is not None:
-            ok = ok and bool(np.all(np.isfinite(self.brake_torques)))
+            ok = ok and bool(np.isfinite(self.brake_torques).all())
         return ok
 
     def is_valid(self) -> bool:

@@ -118,11 +118,11 @@ class FusionImuBias:
         t = stamp_to_sec(msg.header.stamp)
         ba = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
         bg = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
-        if not (np.all(np.isfinite(ba)) and np.all(np.isfinite(bg))):
+        if not (np.isfinite(ba).all() and np.isfinite(bg).all()):
             return None
         o = msg.orientation
         q = np.array([o.x, o.y, o.z, o.w], dtype=float)
-        norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else 0.0
+        norm = float(np.linalg.norm(q)) if np.isfinite(q).all() else 0.0
         # A publisher without a mounting leaves the quaternion at zero: identity.
         mount = quat_to_rotmat(q / norm) if norm > 0.5 else np.eye(3)
         var = msg.linear_acceleration_covariance[0]
