@@ -22,15 +22,16 @@ the others. ``--resume`` skips every bag whose ``result.json`` says ``ok``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import shutil
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Iterator, Sequence
 
 RESULT_FILE = "result.json"
 #: Estimates whose last value is written per bag (topic, what it is, unit).
@@ -106,7 +107,6 @@ class BagJob:
     params: list[str]
     tick_s: float
     vehicle_id: str = ""
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def final_values(estimates: Path) -> dict[str, float]:
@@ -145,7 +145,7 @@ def run_bag(job: BagJob) -> dict[str, Any]:
     estimates = out / "estimates"
     shutil.rmtree(estimates, ignore_errors=True)     # what a failed earlier attempt left
     result: dict[str, Any] = {"bag": job.bag, "key": job.key, "vehicle_id": job.vehicle_id,
-                              "params": job.params, "status": "failed", "reason": "", **job.extra}
+                              "params": job.params, "status": "failed", "reason": ""}
     wall0 = time.monotonic()
     try:
         stats = replay(Path(job.bag), estimates, lambda ov: NodeGroup([Path(p) for p in job.params], overrides=ov),
@@ -174,49 +174,48 @@ def load_result(out_dir: Path) -> dict[str, Any] | None:
 
 
 # ------------------------------------------------------------------------------ the fleet
-def _client(workers: int | None, scheduler: str | None) -> Any:
+@contextlib.contextmanager
+def dask_client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
+    """A Dask client on ``scheduler``, or on a local cluster of ``workers`` processes (default:
+    one per core) that ends with the block."""
     try:
         from distributed import Client, LocalCluster
     except ImportError:
         raise BatchError("batch needs Dask distributed: pip install -e '.[fleet]'") from None
     if scheduler:
-        return Client(scheduler), None
+        with Client(scheduler) as client:
+            yield client
+        return
     n = workers or os.cpu_count() or 1
     # One single-threaded worker process per core: a replay is CPU-bound Python (one core),
     # and rclpy contexts are per process.
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
-    return Client(cluster), cluster
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        yield client
 
 
-def run_jobs(jobs: Sequence[BagJob], *, workers: int | None = None, scheduler: str | None = None,
-             progress: bool = True) -> list[dict[str, Any]]:
+def run_jobs(jobs: Sequence[BagJob], client: Any, *, progress: bool = True) -> list[dict[str, Any]]:
     """Run :func:`run_bag` for every job on the cluster; results in the jobs' order."""
     if not jobs:
         return []
     from distributed import as_completed
     from tqdm import tqdm
 
-    client, cluster = _client(workers, scheduler)
     results: dict[str, dict[str, Any]] = {}
-    try:
-        # pure=False: a rerun of the same job is a new replay, never a cached result.
-        futures = {client.submit(run_bag, job, pure=False, key=f"bag-{job.key}-{time.time_ns()}"): job
-                   for job in jobs}
-        bar = tqdm(total=len(jobs), desc="batch", unit="bag", file=sys.stderr, disable=None if progress else True)
-        for future in as_completed(futures):
-            job = futures[future]
-            try:
-                results[job.key] = future.result()
-            except Exception as exc:   # the worker died (a crash, out of memory)
-                results[job.key] = {"bag": job.bag, "key": job.key, "vehicle_id": job.vehicle_id,
-                                    "status": "failed", "reason": f"worker lost: {type(exc).__name__}: {exc}"}
-                _write_json(Path(job.out_dir) / RESULT_FILE, results[job.key])
-            bar.update(1)
-        bar.close()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    # pure=False: a rerun of the same job is a new replay, never a cached result.
+    futures = {client.submit(run_bag, job, pure=False, key=f"bag-{job.key}-{time.time_ns()}"): job
+               for job in jobs}
+    bar = tqdm(total=len(jobs), desc="batch", unit="bag", file=sys.stderr, disable=None if progress else True)
+    for future in as_completed(futures):
+        job = futures[future]
+        try:
+            results[job.key] = future.result()
+        except Exception as exc:   # the worker died (a crash, out of memory)
+            results[job.key] = {"bag": job.bag, "key": job.key, "vehicle_id": job.vehicle_id,
+                                "status": "failed", "reason": f"worker lost: {type(exc).__name__}: {exc}"}
+            _write_json(Path(job.out_dir) / RESULT_FILE, results[job.key])
+        bar.update(1)
+    bar.close()
     return [results[job.key] for job in jobs]
 
 
@@ -225,7 +224,7 @@ def _dig(d: Any, path: Sequence[str]) -> float:
         if not isinstance(d, dict) or key not in d:
             return math.nan
         d = d[key]
-    return float(d) if isinstance(d, (int, float)) and d is not None else math.nan
+    return float(d) if isinstance(d, (int, float)) else math.nan
 
 
 def summarize(results: Sequence[dict[str, Any]], out: Path, *, wall_s: float, workers: int | None) -> dict[str, Any]:
@@ -369,8 +368,8 @@ def calibrate_vehicle(vehicle_id: str, bag: str, mass: float, base_vehicle: str,
     return result
 
 
-def run_calibrations(table: dict[Path, tuple[str, float]], base_vehicle: Path, out: Path, *,
-                     workers: int | None, scheduler: str | None) -> dict[str, dict[str, Any]]:
+def run_calibrations(table: dict[Path, tuple[str, float]], base_vehicle: Path, out: Path,
+                     client: Any) -> dict[str, dict[str, Any]]:
     """One calibration per vehicle id, on its longest bag of known mass, on the cluster."""
     from rosbags.highlevel import AnyReader
 
@@ -390,14 +389,8 @@ def run_calibrations(table: dict[Path, tuple[str, float]], base_vehicle: Path, o
                      str(out / "calibration" / f"{_safe(vehicle_id)}.yaml")))
     if not jobs:
         return {}
-    client, cluster = _client(workers, scheduler)
-    try:
-        futures = [client.submit(calibrate_vehicle, *job, pure=False) for job in jobs]
-        results = client.gather(futures, errors="skip")
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    futures = [client.submit(calibrate_vehicle, *job, pure=False) for job in jobs]
+    results = client.gather(futures, errors="skip")
     done = {r["vehicle_id"]: r for r in results}
     for job in jobs:
         done.setdefault(job[0], {"vehicle_id": job[0], "bag": job[1], "status": "failed", "reason": "worker lost"})
@@ -447,32 +440,37 @@ def main(args: argparse.Namespace) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         table = read_vehicle_table(Path(args.mass_from), bags) if args.mass_from else {}
-        calibrations: dict[str, dict[str, Any]] = {}
         wall0 = time.monotonic()
-        if args.calibrate:
-            calibrations = run_calibrations(table, params_file(args.vehicle), out,
-                                            workers=args.workers, scheduler=args.scheduler)
-            for vehicle_id, c in calibrations.items():
-                line = f"R^2 {c['r2']:.3f} -> {c['params']}" if c["status"] == "ok" else c["reason"]
-                print(f"calibration of {vehicle_id} on {Path(c['bag']).name}: {c['status']}, {line}",
-                      file=sys.stderr)
-        jobs, results = [], {}
-        for bag, key in zip(bags, bag_keys(bags)):
-            vehicle_id = table.get(bag, ("", math.nan))[0]
-            params = list(files)
-            calibration = calibrations.get(vehicle_id)
-            if calibration is not None and calibration["status"] == "ok":
-                params[0] = calibration["params"]     # the calibrated file in place of --vehicle
-            job = BagJob(str(bag), key, str(out / key), params, args.tick, vehicle_id)
+        keys = bag_keys(bags)
+        results: dict[str, dict[str, Any]] = {}
+        pending = []
+        for bag, key in zip(bags, keys):
             previous = load_result(out / key) if args.resume else None
             if previous is not None and previous.get("status") == "ok":
                 results[key] = {**previous, "skipped": True}
             else:
-                jobs.append(job)
-        print(f"batch: {len(bags)} bags, {len(jobs)} to replay, {len(results)} done before", file=sys.stderr)
-        for r in run_jobs(jobs, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet):
-            results[r["key"]] = r
-        ordered = [results[key] for key in bag_keys(bags)]
+                pending.append((bag, key))
+        print(f"batch: {len(bags)} bags, {len(pending)} to replay, {len(results)} done before", file=sys.stderr)
+        calibrations: dict[str, dict[str, Any]] = {}
+        if args.calibrate or pending:
+            with dask_client(args.workers, args.scheduler) as client:
+                if args.calibrate:
+                    calibrations = run_calibrations(table, params_file(args.vehicle), out, client)
+                    for vehicle_id, c in calibrations.items():
+                        line = f"R^2 {c['r2']:.3f} -> {c['params']}" if c["status"] == "ok" else c["reason"]
+                        print(f"calibration of {vehicle_id} on {Path(c['bag']).name}: {c['status']}, {line}",
+                              file=sys.stderr)
+                jobs = []
+                for bag, key in pending:
+                    vehicle_id = table.get(bag, ("", math.nan))[0]
+                    params = list(files)
+                    calibration = calibrations.get(vehicle_id)
+                    if calibration is not None and calibration["status"] == "ok":
+                        params[0] = calibration["params"]     # the calibrated file in place of --vehicle
+                    jobs.append(BagJob(str(bag), key, str(out / key), params, args.tick, vehicle_id))
+                for r in run_jobs(jobs, client, progress=not args.quiet):
+                    results[r["key"]] = r
+        ordered = [results[key] for key in keys]
         summary = summarize(ordered, out, wall_s=time.monotonic() - wall0,
                             workers=None if args.scheduler else (args.workers or os.cpu_count()))
         if calibrations:

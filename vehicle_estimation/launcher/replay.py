@@ -214,7 +214,10 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
         if not in_process and "ROS_DOMAIN_ID" not in os.environ:
             # A domain of its own: another replay, or the vehicle stack, must not share our
             # /clock and sync topics. The nodes inherit it with the environment.
-            claim = claim_domain_id()
+            try:
+                claim = claim_domain_id()
+            except RuntimeError as exc:
+                raise ReplayError(str(exc)) from None
             os.environ["ROS_DOMAIN_ID"] = str(claim.domain)
             say(f"replay: in ROS domain {claim.domain} (set ROS_DOMAIN_ID to choose one)")
         if in_process:
@@ -355,8 +358,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-dir", default=None, help="write each node's log here")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--in-process", action="store_true",
-                   help="run the nodes in this process without DDS (same estimates, several times faster; "
-                        "node logs go to this process's stderr)")
+                   help="run the nodes in this process without DDS (the same estimates, on one core at about "
+                        "half the CPU; node logs go to this process's stderr)")
     add_remap_option(p, "play a bag topic as a contract topic, ROS-style CONTRACT:=BAG_TOPIC (e.g. "
                         "imu/data:=/sensors/imu; the reverse order is taken too)")
     add_node_options(p)

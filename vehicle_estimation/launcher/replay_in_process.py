@@ -19,28 +19,16 @@ from collections import Counter
 from typing import Any
 
 import rclpy
+from rclpy.expand_topic_name import expand_topic_name
 from rosbags.rosbag2 import Writer
 
 from vehicle_estimation.launcher.replay_driver import DIAGNOSTICS_TYPE, RECORDED_TOPICS, ReplayError, msg_class
 from vehicle_estimation.ros.runtime.in_process import InProcessBus
 from vehicle_estimation.ros.runtime.parameters import ParameterError
 
-#: The node classes by ``PIPELINE`` name, imported when a replay starts.
-NODE_CLASSES = {
-    "fusion": ("vehicle_estimation.ros.fusion_node", "FusionNode"),
-    "vehicle_state": ("vehicle_estimation.ros.state_node", "StateNode"),
-    "road_slope": ("vehicle_estimation.ros.slope_node", "SlopeNode"),
-    "mass": ("vehicle_estimation.ros.mass_node", "MassNode"),
-}
-
-
-def resolve(namespace: str, topic: str) -> str:
-    """A topic name as a node in ``namespace`` resolves it (no remapping)."""
-    if topic.startswith("/"):
-        return topic
-    ns = namespace.rstrip("/")
-    return f"{ns}/{topic}"
-
+#: The node name topics are resolved as (as the DDS replay's player node): it only matters for
+#: private names, which the contract does not use.
+PLAYER = "replay_player"
 
 def _isolated_context() -> rclpy.Context:
     """An rclpy context that discovers nothing: the nodes' only traffic is the bus."""
@@ -70,13 +58,12 @@ class InProcessReplay:
         self.writer = writer
         self.bus = InProcessBus()
         self.recorded: Counter[str] = Counter()
-        self._input_types: dict[str, Any] = {}
+        self._inputs: dict[str, tuple[str, Any]] = {}    # contract topic -> (resolved name, type)
         self.context = _isolated_context()
         self.nodes: list[Any] = []
         try:
             for proc in group.nodes:
-                module, cls = NODE_CLASSES[proc.spec.name]
-                node_class = getattr(importlib.import_module(module), cls)
+                node_class = getattr(importlib.import_module(proc.spec.module), proc.spec.node_class)
                 cli_args = proc.argv[proc.argv.index("--ros-args"):]
                 try:
                     self.nodes.append(node_class(
@@ -91,7 +78,7 @@ class InProcessReplay:
 
     def _record(self, recorded: list[tuple[str, str]], typestore: Any) -> None:
         for topic, type_name in recorded:
-            name = resolve(self.namespace, topic)
+            name = expand_topic_name(topic, PLAYER, self.namespace)
             connection = (self.writer.add_connection(name, type_name, typestore=typestore)
                           if self.writer is not None else None)
 
@@ -108,8 +95,8 @@ class InProcessReplay:
 
     # ------------------------------------------------------------ the replay's engine interface
     def add_input(self, topic: str, type_name: str) -> str:
-        name = resolve(self.namespace, topic)
-        self._input_types[name] = msg_class(type_name)
+        name = expand_topic_name(topic, PLAYER, self.namespace)
+        self._inputs[topic] = (name, msg_class(type_name))
         return name
 
     def handshake(self, t_start_ns: int, timeout: float) -> None:
@@ -118,8 +105,8 @@ class InProcessReplay:
         self.bus.tick(handshake_ns(t_start_ns))
 
     def publish(self, topic: str, data: bytes) -> None:
-        name = resolve(self.namespace, topic)
-        self.bus.publish_bytes(name, self._input_types[name], data)
+        name, msg_type = self._inputs[topic]
+        self.bus.publish_bytes(name, msg_type, data)
 
     def tick(self, tick_ns: int) -> None:
         self.bus.tick(tick_ns)

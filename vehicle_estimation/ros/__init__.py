@@ -14,6 +14,7 @@ class NodeSpec:
     module: str        # python -m module runs it
     executable: str    # console script installed under lib/vehicle_estimation
     depth: int         # position in the data flow (fusion 0 ... mass 3)
+    node_class: str    # the rclpy Node subclass in ``module`` (``replay --in-process`` builds it)
 
 
 # Paper 004 Fig. 1: the slope observer needs the state's vx and vy (fast signals: a lag of
@@ -21,8 +22,8 @@ class NodeSpec:
 # needs the slope and the mass, which change slowly. So the state runs before the slope, and
 # state <- slope, state <- mass are the feedback edges (looked up with sync.feedback_lag).
 PIPELINE = (
-    NodeSpec("fusion", "vehicle_estimation.ros.fusion_node", "fusion_node", 0),
-    NodeSpec("vehicle_state", "vehicle_estimation.ros.state_node", "state_node", 1),
-    NodeSpec("road_slope", "vehicle_estimation.ros.slope_node", "slope_node", 2),
-    NodeSpec("mass", "vehicle_estimation.ros.mass_node", "mass_node", 3),
+    NodeSpec("fusion", "vehicle_estimation.ros.fusion_node", "fusion_node", 0, "FusionNode"),
+    NodeSpec("vehicle_state", "vehicle_estimation.ros.state_node", "state_node", 1, "StateNode"),
+    NodeSpec("road_slope", "vehicle_estimation.ros.slope_node", "slope_node", 2, "SlopeNode"),
+    NodeSpec("mass", "vehicle_estimation.ros.mass_node", "mass_node", 3, "MassNode"),
 )

@@ -237,10 +237,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         """``B = E_N(x,P)[(z - h(x))(z - h(x))^T]`` by the cubature rule ("adjustment matrix"),
         in closed form for an affine ``h``: ``e e^T + H P H^T`` with ``e = z - H x - c``."""
         if self.h_affine is not None:
-            H, c = self.h_affine(*args)
-            e = z - H @ x - c
-            B = np.outer(e, e) + H @ P @ H.T
-            return 0.5 * (B + B.T)
+            return _affine_residual_moment(z, x, P, *self.h_affine(*args))
         Z = self._apply(self.h, self.sigma_points(x, P), *args)
         e = z - Z
         B = self.points.covariance(e, e)
@@ -309,30 +306,22 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         return innovation
 
     def _iterate_affine(self, z, innovation, Czz, Pxz, x_pred, P_pred, dof, scale_pred, H, c) -> None:
-        """The iterations of :meth:`update` for an affine ``h = H x + c`` and a fixed ``N``: the same
-        arithmetic, step for step, as the general loop with :meth:`_residual_second_moment` and
-        :meth:`correct` (so the same numbers), with the per-iteration checks that only guard
-        against non-finite values done once at the end, where a NaN or inf would still show.
-        Raises :class:`_NumericalFailure` or ``LinAlgError`` as the general loop does."""
-        Ht = H.T
-        P_i = P_pred
-        e = z - H @ x_pred - c
+        """The iterations of :meth:`update` for an affine ``h = H x + c`` and a fixed ``N``: the
+        same steps as the general loop (so the same numbers), with the residual moment in
+        closed form and the checks that only guard against non-finite values done once at the
+        end, where a NaN or inf would still show. Raises :class:`_NumericalFailure` or
+        ``LinAlgError`` as the general loop does."""
         kind = self.vb.r_estimate
         with np.errstate(all="ignore"):
             for _ in range(self.vb.iterations):
-                B = np.outer(e, e) + H @ P_i @ Ht
-                scale = scale_pred + 0.5 * (B + B.T)
+                scale = scale_pred + _affine_residual_moment(z, self._x, self._P, H, c)
                 Pzz = Czz + self._point_estimate(dof, scale, kind)
                 np.linalg.cholesky(Pzz)          # LinAlgError: not positive definite
-                K = np.linalg.solve(Pzz, Pxz.T).T
-                P = P_pred - K @ Pzz @ K.T
-                x_i = x_pred + K @ innovation
-                P_i = 0.5 * (P + P.T)
-                e = z - H @ x_i - c
-        if not (np.isfinite(x_i).all() and np.isfinite(P_i).all() and np.isfinite(scale).all()):
+                self._x, self._P = x_pred, P_pred
+                self.correct(innovation, Pzz, Pxz)
+        if not (np.isfinite(self._x).all() and np.isfinite(self._P).all() and np.isfinite(scale).all()):
             raise _NumericalFailure
-        self._x, self._P, self._dof, self._scale = x_i, P_i, dof, scale
-        self.last_gain, self.last_innovation, self.last_innovation_covariance = K, innovation, Pzz
+        self._dof, self._scale = dof, scale
         self.last_iterations = self.vb.iterations
 
     def _fallback(self, innovation, Czz, Pxz, x_pred, P_pred, dof_pred, scale_pred) -> None:
@@ -355,6 +344,14 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         if not ok:  # not even the plain correction: keep the prediction
             self._x, self._P = x_pred, P_pred
             self.rejected_measurements += 1
+
+
+def _affine_residual_moment(z, x, P, H, c) -> np.ndarray:
+    """``E_N(x,P)[(z - h(x))(z - h(x))^T]`` for ``h(x) = H x + c``: ``e e^T + H P H^T`` with
+    ``e = z - H x - c``, symmetrised (what the cubature rule gives exactly, to rounding)."""
+    e = z - H @ x - c
+    B = np.outer(e, e) + H @ P @ H.T
+    return 0.5 * (B + B.T)
 
 
 # ----------------------------------------------------------------------------------------

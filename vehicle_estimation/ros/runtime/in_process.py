@@ -27,12 +27,13 @@ from __future__ import annotations
 
 import heapq
 import itertools
-import math
 from collections import defaultdict, deque
 from typing import Any, Callable
 
 from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.time import Time
+
+from vehicle_estimation.ros.runtime.sync import TickRelease
 
 Callback = Callable[[Any], None]
 
@@ -90,34 +91,6 @@ class _Timer:
 
     def __init__(self, period_ns: int, callback: Callable[[], None], next_ns: int) -> None:
         self.period_ns, self.callback, self.next_ns = period_ns, callback, next_ns
-
-
-class TickRelease:
-    """A node's side of an in-process tick: the same release rule as the DDS protocol's
-    :class:`~vehicle_estimation.ros.runtime.sync.ReplaySyncResponder`, without the messages."""
-
-    def __init__(self, *, release: Callable[[int], None], on_clock_jump: Callable[[str], None],
-                 release_delay_s: float, time_jump_reset_s: float) -> None:
-        self.release = release
-        self.on_clock_jump = on_clock_jump
-        self.release_delay_ns = int(round(release_delay_s * 1e9))
-        self.time_jump_reset_s = time_jump_reset_s
-        self._last_tick = -math.inf
-
-    def tick(self, tick_ns: int) -> None:
-        tick = tick_ns * 1e-9
-        if tick < self._last_tick - self.time_jump_reset_s:
-            self.on_clock_jump(f"replay clock jumped back to {tick:.3f}: resetting estimators")
-        self._last_tick = tick
-        self.release(tick_ns - self.release_delay_ns)
-
-    # The DDS responder's hooks: an input or an upstream estimate arrived. Here nothing waits
-    # for counts; the bus releases on its own ticks.
-    def try_complete(self) -> None:
-        pass
-
-    def schedule_reack(self) -> None:
-        pass
 
 
 class InProcessBus:

@@ -26,12 +26,12 @@ from vehicle_estimation.contract import topics
 from vehicle_estimation.ros.cdr import raw_reader
 from vehicle_estimation.ros.conversions import imu_arrays, imu_rejection, speed_reading
 from vehicle_estimation.ros.runtime.diagnostics import NodeHealth
-from vehicle_estimation.ros.runtime.in_process import InProcessBus, TickRelease
+from vehicle_estimation.ros.runtime.in_process import InProcessBus
 from vehicle_estimation.ros.runtime.input_queue import StampOrderedInputs
 from vehicle_estimation.ros.runtime.parameters import ParameterDeclarations
 from vehicle_estimation.ros.runtime.qos import output_qos, sensor_qos
 from vehicle_estimation.ros.stamps import stamp_ns, stamp_to_sec
-from vehicle_estimation.ros.runtime.sync import ReplaySyncResponder
+from vehicle_estimation.ros.runtime.sync import ReplaySyncResponder, TickRelease
 from vehicle_estimation.ros.runtime.upstream import FusionImuBias, UpstreamHistory
 
 

@@ -36,6 +36,35 @@ MATCHED_PREFIX = "matched:"
 SOURCES_PREFIX = "sources:"
 
 
+class TickRelease:
+    """The release rule of a replay tick: a clock that went back resets the node, then its
+    inputs stamped before ``tick - release_delay`` go to their handlers. The DDS protocol
+    (:class:`ReplaySyncResponder`) applies it once a sync's counts have arrived; the in-process
+    bus (``in_process``) at each of its ticks, where :meth:`try_complete` and
+    :meth:`schedule_reack` have nothing to wait for."""
+
+    def __init__(self, *, release: Callable[[int], None], on_clock_jump: Callable[[str], None],
+                 release_delay_s: float, time_jump_reset_s: float) -> None:
+        self.release = release
+        self.on_clock_jump = on_clock_jump
+        self.release_delay_ns = int(round(release_delay_s * 1e9))
+        self.time_jump_reset_s = time_jump_reset_s
+        self._last_tick = -math.inf
+
+    def tick(self, tick_ns: int) -> None:
+        tick = tick_ns * 1e-9
+        if tick < self._last_tick - self.time_jump_reset_s:
+            self.on_clock_jump(f"replay clock jumped back to {tick:.3f}: resetting estimators")
+        self._last_tick = tick
+        self.release(tick_ns - self.release_delay_ns)
+
+    def try_complete(self) -> None:
+        pass
+
+    def schedule_reack(self) -> None:
+        pass
+
+
 class ReplaySyncResponder:
     """A node's side of the protocol: wait for the counts, release, acknowledge.
 
@@ -51,16 +80,13 @@ class ReplaySyncResponder:
         self.node = node
         self.rx, self.tx = rx, tx
         self.publishers, self.subscriptions = publishers, subscriptions
-        self.release = release
-        self.on_clock_jump = on_clock_jump
-        self.release_delay_ns = int(round(release_delay_s * 1e9))
-        self.time_jump_reset_s = time_jump_reset_s
+        self._release = TickRelease(release=release, on_clock_jump=on_clock_jump,
+                                    release_delay_s=release_delay_s, time_jump_reset_s=time_jump_reset_s)
         self._pending: DiagnosticStatus | None = None
         # The player's per-topic counts in the first sync this process sees: zero at a normal
         # start; the counts so far when the launcher respawns this node mid-replay.
         self._base: dict[str, int] | None = None
         self._last: DiagnosticStatus | None = None
-        self._last_tick = -math.inf
         self._ack_pub = node.create_publisher(DiagnosticStatus, ACK_TOPIC, replay_qos())
         node.create_subscription(DiagnosticStatus, SYNC_TOPIC, self._on_sync, replay_qos())
         self._reack_timer = node.create_timer(
@@ -77,17 +103,13 @@ class ReplaySyncResponder:
         if msg is None:
             return
         tick_ns = int(msg.message)  # the player's tick, integer nanoseconds of bag time
-        tick = tick_ns * 1e-9
         sent = {kv.key[len(TX_PREFIX):]: int(kv.value) for kv in msg.values if kv.key.startswith(TX_PREFIX)}
         if self._base is None:
             self._base = sent
         for topic, count in sent.items():
             if topic in self.rx and self.rx[topic] < count - self._base.get(topic, 0):
                 return  # not everything published before this sync has arrived yet
-        if tick < self._last_tick - self.time_jump_reset_s:
-            self.on_clock_jump(f"replay clock jumped back to {tick:.3f}: resetting estimators")
-        self._last_tick = tick
-        self.release(tick_ns - self.release_delay_ns)
+        self._release.tick(tick_ns)
         self._pending = None
         self._last = msg
         self._send_ack()
