@@ -205,6 +205,11 @@ class SigmaPointKalmanFilter(AdditiveNoiseFilter):
         self.points = points
         self.vectorized = vectorized
         self.h_affine = h_affine
+        # Optional compiled steps, the same rules on the same model: the time update
+        # ``(x, P, Q, dt, *args) -> (x, P)`` and, for an affine ``h``, the update
+        # ``(z, x, P, H, c, R) -> (x, P, K, innovation, P_zz)``; None where they return None.
+        self.compiled_predict: Optional[Callable] = None
+        self.compiled_update: Optional[Callable] = None
         self.last_innovation_covariance: Optional[np.ndarray] = None
         self.last_gain: Optional[np.ndarray] = None
 
@@ -220,11 +225,16 @@ class SigmaPointKalmanFilter(AdditiveNoiseFilter):
     # -- time update ---------------------------------------------------------------------
     def predict(self, dt: float, *args, Q: Optional[np.ndarray] = None) -> None:
         """Time update through ``f(X, dt, *args)``; keeps the prior in :attr:`x_prior`, :attr:`P_prior`."""
-        Xp = self._apply(self.f, self.sigma_points(), dt, *args)
-        x = self.points.mean(Xp)
-        d = Xp - x
-        P = self.points.covariance(d, d) + (self.Q if Q is None else Q)
-        self._x, self._P = x, 0.5 * (P + P.T)
+        Q = self.Q if Q is None else Q
+        moments = None if self.compiled_predict is None else self.compiled_predict(self._x, self._P, Q, dt, *args)
+        if moments is not None:
+            self._x, self._P = moments
+        else:
+            Xp = self._apply(self.f, self.sigma_points(), dt, *args)
+            x = self.points.mean(Xp)
+            d = Xp - x
+            P = self.points.covariance(d, d) + Q
+            self._x, self._P = x, 0.5 * (P + P.T)
         self.x_prior, self.P_prior = self._x.copy(), self._P.copy()
 
     # -- measurement update --------------------------------------------------------------
@@ -269,6 +279,12 @@ class SigmaPointKalmanFilter(AdditiveNoiseFilter):
     def update(self, z, *args, R: Optional[np.ndarray] = None, select=None) -> np.ndarray:
         """Measurement update with ``z`` (the ``select``-ed channels); returns ``z - z_hat``."""
         z = np.asarray(z, dtype=float).reshape(self.m if select is None else -1)
+        if self.compiled_update is not None and self.h_affine is not None and select is None:
+            result = self.compiled_update(z, self._x, self._P, *self.h_affine(*args), self._noise(R, None))
+            if result is not None:
+                self._x, self._P, K, innovation, Pzz = result
+                self.last_gain, self.last_innovation, self.last_innovation_covariance = K, innovation, Pzz
+                return innovation
         z_hat, Pzz0, Pxz = self.measurement_moments(*args, select=select)
         innovation = z - z_hat
         self.correct(innovation, Pzz0 + self._noise(R, select), Pxz)

@@ -61,12 +61,14 @@ import math
 
 import numpy as np
 
+from vehicle_estimation.estimators.common import compiled
 from vehicle_estimation.estimators.common.rotations import (quat_from_euler, quat_from_rotvec, quat_multiply,
                                                             quat_to_rotmat, skew)
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IM, IP, IV, N_ERR, STATUS_ALIGNING,
                                                               STATUS_RUNNING, STATUS_WAIT_HEADING,
                                                               STATUS_WAIT_STANDSTILL)
+from vehicle_estimation.estimators.fusion import ins_kernels
 from vehicle_estimation.estimators.fusion.initialisation import FusionInitialisation
 from vehicle_estimation.estimators.fusion.outputs import FusionOutputs
 
@@ -130,12 +132,18 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         self._Rm0 = quat_to_rotmat(quat_from_euler(*(float(a) for a in c.mounting_rpy)))  # imu_link -> base_link
         self._w_gnss = np.diag(np.asarray(c.gnss_sigma, float) ** 2)
         self._g_vec = np.array([0.0, 0.0, -c.gravity])
+        self._w_nh = np.diag([c.nh_sigma_y ** 2, c.nh_sigma_z ** 2])   # read only
         self._eye15 = np.eye(N_ERR)
         self._eye3 = np.eye(3)
         self._di = np.arange(N_ERR)
         self._qd_dt: float | None = None
         self._qd_walk: bool | None = None
         self._qd = np.zeros(N_ERR)
+        #: Propagation, updates and injection by the compiled kernels of :mod:`.ins_kernels` (the
+        #: same numbers to 1e-12; the numpy methods below are their definition and test oracle).
+        self.compiled = compiled.enabled()
+        if self.compiled:
+            ins_kernels.warm_up(N_ERR)
         self.reset()
 
     # ------------------------------------------------------------------ lifecycle
@@ -295,6 +303,14 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         c = self.config
         R = self._R
         assert self._f_prev is not None and self._w_prev is not None   # only after the first sample
+        self._update_process_noise(dt)
+        if self.compiled:
+            q, R_new, P_new = np.empty(4), np.empty((3, 3)), np.empty((N_ERR, N_ERR))
+            ins_kernels.propagate(dt, c.stationary_imu_tau_s, self._f_prev, self._w_prev, self._ba, self._bg,
+                                  self._g_vec, self._p, self._v, self._q, R, self._a_lp, self._w_lp, self._P,
+                                  self._qd, q, R_new, P_new)
+            self._q, self._R, self._P = q, R_new, P_new
+            return
         s_b = self._f_prev - self._ba                     # Eq. (22)
         w_b = self._w_prev - self._bg
         s_n = R @ s_b                                     # Eq. (25)
@@ -333,20 +349,23 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         F[3:6, 9:12] = -dR
         F[6:9, 12:15] = dR
         P = F @ self._P @ F.T                             # Eq. (35)
-        # G Qc G^T (Eqs. (34), (36)): R diag(sigma^2) R^T = sigma^2 I for isotropic sigma,
-        # so the discrete process noise is diagonal; cached per dt.
+        P[self._di, self._di] += self._qd
+        self._P = P
+
+    def _update_process_noise(self, dt: float) -> None:
+        """G Qc G^T (Eqs. (34), (36)): R diag(sigma^2) R^T = sigma^2 I for isotropic sigma, so
+        the discrete process noise is diagonal; cached per dt."""
+        c = self.config
         walk = self.gnss_aided or c.accel_bias_walk_without_gnss
         if dt != self._qd_dt or walk != self._qd_walk:
             kb = dt * c.imu_rate_hz
-            self._qd = np.concatenate([
-                np.zeros(3), np.full(3, (dt * c.q_accel_sigma) ** 2),
-                np.full(3, (dt * c.q_gyro_sigma) ** 2),
-                np.full(3, kb * c.q_accel_bias_sigma ** 2 if walk else 0.0),
-                np.full(3, kb * c.q_gyro_bias_sigma ** 2),
-                np.full(2, kb * c.q_mounting_sigma ** 2 if c.estimate_mounting else 0.0)])
-            self._qd_dt, self._qd_walk = dt, walk
-        P[self._di, self._di] += self._qd
-        self._P = P
+            qd = np.zeros(N_ERR)   # a new array: the previous one may still be referenced
+            qd[IV:IV + 3] = (dt * c.q_accel_sigma) ** 2
+            qd[IA:IA + 3] = (dt * c.q_gyro_sigma) ** 2
+            qd[IBA:IBA + 3] = kb * c.q_accel_bias_sigma ** 2 if walk else 0.0
+            qd[IBG:IBG + 3] = kb * c.q_gyro_bias_sigma ** 2
+            qd[IM:IM + 2] = kb * c.q_mounting_sigma ** 2 if c.estimate_mounting else 0.0
+            self._qd, self._qd_dt, self._qd_walk = qd, dt, walk
 
     # ------------------------------------------------------------------ measurement helpers
     def _body_speed_rows(self, rows) -> tuple:
@@ -357,6 +376,11 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         mounting R_m (imu_link -> base_link) with R_m,true = R_m (I + S(dm)) adds
         v_b = R_m v_i - R_m S(v_i) dm.
         """
+        if self.compiled:
+            pred, H = np.empty(len(rows)), np.empty((len(rows), N_ERR))
+            ins_kernels.body_speed_rows(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64),
+                                        self.config.full_velocity_jacobian, self.config.estimate_mounting, pred, H)
+            return pred, H
         Rt = self._R.T
         Rm = self._Rm
         vi = Rt @ self._v
@@ -375,12 +399,30 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         c = self.config
         if self._is_stationary(t):
             rows = [0, 1, 2] if c.stationary_update_longitudinal else [1, 2]
-            r = np.full(len(rows), c.stationary_sigma ** 2)
+            W = np.diag(np.full(len(rows), c.stationary_sigma ** 2))
         else:
             rows = [1, 2]
-            r = np.array([c.nh_sigma_y ** 2, c.nh_sigma_z ** 2])
+            W = self._w_nh
+        if self.compiled:
+            self._constraint_update_compiled(rows, W)
+            return
         pred, H = self._body_speed_rows(rows)
-        self._update(-pred, H, np.diag(r), None)
+        self._update(-pred, H, W, None)
+
+    def _constraint_update_compiled(self, rows: list[int], W: np.ndarray) -> None:
+        """:meth:`_nh_update`'s update by :func:`.ins_kernels.constraint_update` (one call)."""
+        c = self.config
+        hold = IBG + 2 if c.hold_yaw_rate_bias_without_gnss and not self.gnss_aided else -1
+        q, R, Rm, P = np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((N_ERR, N_ERR))
+        res = ins_kernels.constraint_update(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64), W,
+                                            c.full_velocity_jacobian, c.estimate_mounting, hold, self._p, self._ba,
+                                            self._bg, self._q, self._P, q, R, Rm, P)
+        if res == ins_kernels.UPDATE_FAILED:
+            self.rejected["update_numerical"] += 1
+        elif res == ins_kernels.UPDATE_APPLIED:
+            self._q, self._R, self._P = q, R, P
+            if c.estimate_mounting:
+                self._Rm = Rm
 
     def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form).
@@ -388,6 +430,8 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         Returns 1 if applied, 0 if gated out, -1 on numerical failure.
         """
         P = self._P
+        if self.compiled:
+            return self._update_compiled(y, H, W, gate)
         PHt = P @ H.T
         S = H @ PHt + W
         S_inv = _inv_small(S)
@@ -409,6 +453,26 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         P = A @ P @ A.T + K @ W @ K.T                     # Eq. (44), Joseph form
         self._P = 0.5 * (P + P.T)
         self._inject(dz)
+        return 1
+
+    def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
+        """:meth:`_update` by :func:`.ins_kernels.joseph_update` and :func:`.ins_kernels.inject`."""
+        c = self.config
+        P, dz = np.empty((N_ERR, N_ERR)), np.empty(N_ERR)
+        hold = IBG + 2 if c.hold_yaw_rate_bias_without_gnss and not self.gnss_aided else -1
+        res = ins_kernels.joseph_update(self._P, H, W, y, 0.0 if gate is None else float(gate), gate is not None,
+                                        hold, P, dz)
+        if res == ins_kernels.UPDATE_FAILED:
+            self.rejected["update_numerical"] += 1
+            return -1
+        if res == ins_kernels.UPDATE_GATED:
+            return 0
+        self._P = P
+        q, R, Rm = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
+        ins_kernels.inject(dz, self._p, self._v, self._q, self._ba, self._bg, self._Rm, c.estimate_mounting, q, R, Rm)
+        self._q, self._R = q, R
+        if c.estimate_mounting:
+            self._Rm = Rm
         return 1
 
     def _inject(self, dz: np.ndarray) -> None:

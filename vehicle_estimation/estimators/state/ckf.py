@@ -28,6 +28,8 @@ from vehicle_estimation.estimators.common.sigma_points import (
     SigmaPointKalmanFilter,
     is_positive_definite,
 )
+from vehicle_estimation.estimators.common import compiled, small_linalg
+from vehicle_estimation.estimators.state import model_kernels
 from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.core import VehicleStateCore
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
@@ -175,6 +177,20 @@ class VehicleStateCKF(VehicleStateCore):
         # The IMU measurement is affine in the state: its moments in closed form, not by points.
         self._h_affine = lambda inputs: vm.measurement_affine(inputs, params)
         self._filter = self._make_filter(f, h)
+        self.use_compiled(compiled.enabled())
+
+    def use_compiled(self, on: bool) -> None:
+        """Run the time update (and the VB iterations) by the compiled kernels, or by numpy.
+        Both give the same estimates to 1e-12 (tests); the bench times them side by side."""
+        cfg = self.config
+        if on:
+            model_kernels.warm_up()
+        model = model_kernels.CompiledModel(self.params, cfg.min_speed, cfg.max_substep, cfg.wheel_slip_forces)
+        self._filter.compiled_predict = model.predict if on else None
+        self._filter.compiled_update = model.update if on else None
+        if hasattr(self._filter, "compiled_iterations"):
+            self._filter.compiled_iterations = on
+        self.compiled_checks = on
 
     def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
         """Factory hook: the filter on the model closures ``f``, ``h`` (called once by
@@ -200,32 +216,32 @@ class VehicleStateCKF(VehicleStateCore):
             return False
         t, z, dt = sample
         cfg = self.config
-        if not self.initialised:
-            vx0 = self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None
-            if vx0 is not None:
-                self._filter.reset(self._x0(vx0), cfg.P0)
-            self.initialised = True
-        else:
-            Q = self.process_noise * (dt / cfg.nominal_dt) if cfg.scale_q_with_dt else self._filter.Q
-            Q = self._with_extra_vx_noise(Q, dt)
-            try:
-                with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"):   # absurd inputs end as a numerical failure, handled below
+            if not self.initialised:
+                vx0 = self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None
+                if vx0 is not None:
+                    self._filter.reset(self._x0(vx0), cfg.P0)
+                self.initialised = True
+            else:
+                Q = self.process_noise * (dt / cfg.nominal_dt) if cfg.scale_q_with_dt else self._filter.Q
+                Q = self._with_extra_vx_noise(Q, dt)
+                try:
                     self._filter.predict(dt, inputs, Q=Q)
-            except np.linalg.LinAlgError:
-                self._filter._x[:] = np.nan   # handled as a numerical failure below
-        self.t = t
-        if not np.isfinite(z).all():
-            if self._reinitialised_after_failure(inputs):
+                except np.linalg.LinAlgError:
+                    self._filter._x[:] = np.nan   # handled as a numerical failure below
+            self.t = t
+            if not (math.isfinite(z[0]) and math.isfinite(z[1]) and math.isfinite(z[2])):
+                if self._reinitialised_after_failure(inputs):
+                    return False
+                self.rejected["nonfinite_measurement"] += 1
+                self.last_event = "non-finite measurement"
                 return False
-            self.rejected["nonfinite_measurement"] += 1
-            self.last_event = "non-finite measurement"
-            return False
-        if np.isfinite(self._filter._x).all() and np.isfinite(self._filter._P).all():
-            try:
-                with np.errstate(all="ignore"):
+            x, P = self._filter._x, self._filter._P
+            if small_linalg.all_finite(x, P) if self.compiled_checks else (np.isfinite(x).all() and np.isfinite(P).all()):
+                try:
                     self._filter.update(z, inputs)
-            except np.linalg.LinAlgError:
-                self._filter._x[:] = np.nan   # handled as a numerical failure below
+                except np.linalg.LinAlgError:
+                    self._filter._x[:] = np.nan   # handled as a numerical failure below
         if self._reinitialised_after_failure(inputs):
             return False
         self.updates += 1

@@ -31,6 +31,7 @@ import numpy as np
 from vehicle_estimation.contract.settings import setting
 from vehicle_estimation.contract.vehicle import VehicleParams
 from vehicle_estimation.estimators.common.guard import StepGuard
+from vehicle_estimation.estimators.common import small_linalg
 from vehicle_estimation.estimators.common.sigma_points import AdditiveNoiseFilter, valid_moments
 from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
@@ -87,6 +88,9 @@ class VehicleStateCore(StepGuard, ABC):
         self.extra_vx_noise_density = 0.0
         #: :attr:`ModelErrorSettings.tyre_stiffness_std`, set by the owner (the registry's builders).
         self.tyre_stiffness_std = 0.0
+        #: The per-step validity check by a compiled kernel (set with the filter's kernels).
+        self.compiled_checks = False
+        self._factor_work = np.empty_like(P0, dtype=float)
 
     # -- helpers -------------------------------------------------------------------------
     def _x0(self, vx0: Optional[float]) -> np.ndarray:
@@ -144,7 +148,11 @@ class VehicleStateCore(StepGuard, ABC):
     def _reinitialised_after_failure(self, inputs: VehicleInputs) -> bool:
         """Re-initialise (and count it) when the mean is not finite or the covariance is no
         longer positive definite (absurd inputs, rounding); True if it did."""
-        if valid_moments(self._filter._x, self._filter._P):
+        x, P = self._filter._x, self._filter._P
+        if self.compiled_checks:
+            if small_linalg.valid_moments(x, P, self._factor_work):
+                return False
+        elif valid_moments(x, P):
             return False
         self.reset(self._vx_after_failure(inputs))
         self.reinitialisations += 1

@@ -77,8 +77,10 @@ import numpy as np
 
 from vehicle_estimation.contract.settings import check_settings, setting
 from vehicle_estimation.contract.vehicle import VehicleParams
+from vehicle_estimation.estimators.common import compiled
 from vehicle_estimation.estimators.common.sigma_points import as_matrix, is_positive_definite
 from vehicle_estimation.estimators.state.ckf import CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig
+from vehicle_estimation.estimators.state.model_kernels import VB_FAILED, VB_REJECTED, vb_update
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 
 __all__ = ["VBConfig", "VariationalBayesCKF", "VehicleStateVBACKF"]
@@ -161,6 +163,9 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         self.vb_fallbacks = 0
         self.rejected_measurements = 0
         self.last_iterations = 0
+        # The fixed-N iterations by the compiled kernel (same numbers to 1e-12; the numpy loop
+        # below is its definition and test oracle).
+        self.compiled_iterations = compiled.enabled()
         self.reset_noise_statistics()
 
     # -- noise statistics ----------------------------------------------------------------
@@ -258,6 +263,8 @@ class VariationalBayesCKF(CubatureKalmanFilter):
             return np.full(self.m, np.nan)
         if R is not None:
             return super().update(z, *args, R=R)
+        if self.compiled_iterations and self.h_affine is not None and self.vb.tolerance == 0.0:
+            return self._update_compiled(z, *self.h_affine(*args))
 
         x_pred, P_pred = self._x.copy(), self._P.copy()
         dof_pred, scale_pred = self._dof, self._scale.copy()
@@ -303,6 +310,26 @@ class VariationalBayesCKF(CubatureKalmanFilter):
             self.last_iterations = i + 1
         except (_NumericalFailure, np.linalg.LinAlgError):
             self._fallback(innovation, Czz, Pxz, x_pred, P_pred, dof_pred, scale_pred)
+        return innovation
+
+    def _update_compiled(self, z: np.ndarray, H: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """:meth:`update` by the compiled kernel (affine ``h``, fixed ``N``): the same steps, the
+        same outcomes (rejection, fallback), the same numbers to 1e-12."""
+        n, m = self.n, self.m
+        innovation, Czz, Pxz = np.empty(m), np.empty((m, m)), np.empty((n, m))
+        x, P, scale, K, Pzz = np.empty(n), np.empty((n, n)), np.empty((m, m)), np.empty((n, m)), np.empty((m, m))
+        x_pred, P_pred, dof_pred, scale_pred = self._x, self._P, self._dof, self._scale
+        outcome = vb_update(z, x_pred, P_pred, float(dof_pred), scale_pred, H, c, self.vb.iterations,
+                            self.vb.r_estimate == "mean", innovation, Czz, Pxz, x, P, scale, K, Pzz)
+        if outcome == VB_REJECTED:
+            self.rejected_measurements += 1
+            self.last_iterations = 0
+        elif outcome == VB_FAILED:
+            self._fallback(innovation, Czz, Pxz, x_pred.copy(), P_pred.copy(), dof_pred, scale_pred.copy())
+        else:
+            self._x, self._P, self._dof, self._scale = x, P, dof_pred + 1.0, scale
+            self.last_gain, self.last_innovation, self.last_innovation_covariance = K, innovation, Pzz
+            self.last_iterations = self.vb.iterations
         return innovation
 
     def _iterate_affine(self, z, innovation, Czz, Pxz, x_pred, P_pred, dof, scale_pred, H, c) -> None:

@@ -301,6 +301,14 @@ def _dugoff(slip, alpha, fz, params: VehicleParams):
 
 def _fallback_fx(inputs: VehicleInputs, fz, params: VehicleParams):
     """Quasi-static longitudinal forces from torques (wheel inertia neglected)."""
+    fx = wheel_torques(inputs, params) / params.wheel_radius
+    lim = params.road_friction * fz
+    return np.clip(fx, -lim, lim)
+
+
+def wheel_torques(inputs: VehicleInputs, params: VehicleParams) -> np.ndarray:
+    """Net torque per wheel [N m]: the drive torque split over the driven wheels, less the
+    brake torques (the fallback's longitudinal force before its friction limit)."""
     t = np.zeros(4)
     if inputs.drive_torque is not None:
         axle = params.driven_axle
@@ -309,9 +317,7 @@ def _fallback_fx(inputs: VehicleInputs, fz, params: VehicleParams):
         t = t + inputs.drive_torque * mask / mask.sum()
     if inputs.brake_torques is not None:
         t = t - inputs.brake_torques
-    fx = t / params.wheel_radius
-    lim = params.road_friction * fz
-    return np.clip(fx, -lim, lim)
+    return t
 
 
 def tyre_forces(state, inputs: VehicleInputs, params: VehicleParams, *,

@@ -1,0 +1,284 @@
+"""Compiled forms of the fusion ES-EKF's per-sample maths (see ``common.compiled``).
+
+:func:`propagate` is ``FusionEKF._propagate`` (paper 003 Eqs. (22)-(29), (33)-(36)),
+:func:`body_speed_rows` is ``_body_speed_rows`` (Eq. (46)), :func:`joseph_update` the gain and
+Joseph-form covariance of ``_update`` (Eqs. (37)-(40), (44)) and :func:`inject` is ``_inject``
+(Eqs. (41)-(43)). The numpy methods are the definition and the test oracle
+(``test_model_kernels``): the same numbers to 1e-12.
+
+One difference on purpose: the innovation covariance is inverted through its Cholesky factor,
+so an ``S`` that is not positive definite is a numerical failure here, where the numpy path
+inverts any non-singular ``S`` (an ``S = H P H^T + W`` that is not positive definite is one).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from vehicle_estimation.estimators.common.compiled import kernel
+from vehicle_estimation.estimators.common.small_linalg import cholesky_lower, cholesky_solve_rows
+
+__all__ = ["UPDATE_APPLIED", "UPDATE_GATED", "UPDATE_FAILED", "body_speed_rows", "constraint_update", "inject",
+           "joseph_update",
+           "propagate", "warm_up"]
+
+UPDATE_APPLIED, UPDATE_GATED, UPDATE_FAILED = 1, 0, -1
+_IP, _IV, _IA, _IBA, _IBG, _IM = 0, 3, 6, 9, 12, 15
+
+
+@kernel
+def _rotmat(x, y, z, w, R):
+    """``rotations.quat_to_rotmat`` into ``R``."""
+    s = 2.0 / (x * x + y * y + z * z + w * w)
+    xx, yy, zz = s * x * x, s * y * y, s * z * z
+    xy, xz, yz = s * x * y, s * x * z, s * y * z
+    wx, wy, wz = s * w * x, s * w * y, s * w * z
+    R[0, 0], R[0, 1], R[0, 2] = 1.0 - yy - zz, xy - wz, xz + wy
+    R[1, 0], R[1, 1], R[1, 2] = xy + wz, 1.0 - xx - zz, yz - wx
+    R[2, 0], R[2, 1], R[2, 2] = xz - wy, yz + wx, 1.0 - xx - yy
+
+
+@kernel
+def propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, q_out, R_out, P_out):
+    """INS mechanisation and ``F P F^T + Q_d`` over ``dt``: ``p``, ``v``, ``a_lp``, ``w_lp`` in
+    place; the new attitude in ``q_out``, ``R_out``; the covariance in ``P_out``."""
+    s_b0, s_b1, s_b2 = f_prev[0] - ba[0], f_prev[1] - ba[1], f_prev[2] - ba[2]      # Eq. (22)
+    w_b = np.empty(3)
+    for i in range(3):
+        w_b[i] = w_prev[i] - bg[i]
+    s_n = np.empty(3)
+    for i in range(3):
+        s_n[i] = R[i, 0] * s_b0 + R[i, 1] * s_b1 + R[i, 2] * s_b2                     # Eq. (25)
+    alpha = min(1.0, dt / tau)
+    half = 0.5 * dt * dt
+    for i in range(3):
+        a = s_n[i] + g_vec[i]                                                          # Eq. (27)
+        p[i] += dt * v[i] + half * a                                                    # Eq. (28)
+        v[i] += dt * a                                                                  # Eq. (29)
+        a_lp[i] += alpha * (a - a_lp[i])
+        w_lp[i] += alpha * (w_b[i] - w_lp[i])
+    # Eq. (23), body-rate right product.
+    wx, wy, wz = w_b[0] * dt, w_b[1] * dt, w_b[2] * dt
+    ang = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if ang > 1e-12:
+        k = math.sin(0.5 * ang) / ang
+        cw = math.cos(0.5 * ang)
+    else:
+        k, cw = 0.5, 1.0
+    bx, by, bz = k * wx, k * wy, k * wz
+    qx, qy, qz, qw = q[0], q[1], q[2], q[3]
+    nx = qw * bx + qx * cw + qy * bz - qz * by
+    ny = qw * by - qx * bz + qy * cw + qz * bx
+    nz = qw * bz + qx * by - qy * bx + qz * cw
+    nw = qw * cw - qx * bx - qy * by - qz * bz
+    inv = 1.0 / math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+    q_out[0], q_out[1], q_out[2], q_out[3] = nx * inv, ny * inv, nz * inv, nw * inv
+    _rotmat(q_out[0], q_out[1], q_out[2], q_out[3], R_out)                            # Eq. (26)
+    # Eq. (34), F = I + E with the old R; Eq. (35) as (F P) F^T.
+    n = P.shape[0]
+    F = np.zeros((n, n))
+    for i in range(n):
+        F[i, i] = 1.0
+    F[0, 3] = F[1, 4] = F[2, 5] = dt
+    F[3, 7], F[3, 8] = -dt * s_n[2], dt * s_n[1]
+    F[4, 6], F[4, 8] = dt * s_n[2], -dt * s_n[0]
+    F[5, 6], F[5, 7] = -dt * s_n[1], dt * s_n[0]
+    for i in range(3):
+        for j in range(3):
+            F[3 + i, 9 + j] = -(dt * R[i, j])
+            F[6 + i, 12 + j] = dt * R[i, j]
+    FP = np.zeros((n, n))
+    for i in range(n):
+        for k in range(n):
+            f = F[i, k]
+            if f != 0.0:
+                for j in range(n):
+                    FP[i, j] += f * P[k, j]
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                f = F[j, k]
+                if f != 0.0:
+                    s += FP[i, k] * f
+            P_out[i, j] = s
+    for i in range(n):
+        P_out[i, i] += qd[i]
+
+
+@kernel
+def body_speed_rows(R, Rm, v, rows, full_jacobian, mounting, pred, H):
+    """Eq. (46): ``pred = (R_m R^T v)[rows]`` and its Jacobian ``H`` (attitude columns with
+    ``full_jacobian``, mounting columns with ``mounting``)."""
+    RmRt = np.empty((3, 3))
+    vi = np.empty(3)
+    for i in range(3):
+        vi[i] = R[0, i] * v[0] + R[1, i] * v[1] + R[2, i] * v[2]
+        for j in range(3):
+            RmRt[i, j] = Rm[i, 0] * R[j, 0] + Rm[i, 1] * R[j, 1] + Rm[i, 2] * R[j, 2]
+    H[:, :] = 0.0
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        pred[k] = Rm[r, 0] * vi[0] + Rm[r, 1] * vi[1] + Rm[r, 2] * vi[2]
+        a0, a1, a2 = RmRt[r, 0], RmRt[r, 1], RmRt[r, 2]
+        H[k, _IV], H[k, _IV + 1], H[k, _IV + 2] = a0, a1, a2
+        if full_jacobian:   # -(row @ S(v))
+            H[k, _IA] = -(a1 * v[2] - a2 * v[1])
+            H[k, _IA + 1] = -(-a0 * v[2] + a2 * v[0])
+            H[k, _IA + 2] = -(a0 * v[1] - a1 * v[0])
+        if mounting:        # -(Rm[r] @ S(vi))[1:3]
+            m0, m1, m2 = Rm[r, 0], Rm[r, 1], Rm[r, 2]
+            H[k, _IM] = -(-m0 * vi[2] + m2 * vi[0])
+            H[k, _IM + 1] = -(m0 * vi[1] - m1 * vi[0])
+
+
+@kernel
+def joseph_update(P, H, W, y, gate, use_gate, hold_row, P_out, dz):
+    """Eqs. (37)-(40), (44): gain, error estimate ``dz`` and the Joseph-form covariance,
+    symmetrised. ``hold_row`` >= 0 zeroes that row of the gain (a Schmidt consider state).
+    Returns ``UPDATE_APPLIED``, ``UPDATE_GATED`` (``y^T S^-1 y`` above ``gate``) or
+    ``UPDATE_FAILED`` (``S`` not positive definite, or ``dz`` not finite)."""
+    n = P.shape[0]
+    m = H.shape[0]
+    PHt = np.empty((n, m))
+    for i in range(n):
+        for a in range(m):
+            s = 0.0
+            for k in range(n):
+                s += P[i, k] * H[a, k]
+            PHt[i, a] = s
+    S = np.empty((m, m))
+    for a in range(m):
+        for b in range(m):
+            s = W[a, b]
+            for k in range(n):
+                s += H[a, k] * PHt[k, b]
+            S[a, b] = s
+    L = np.empty((m, m))
+    if not cholesky_lower(S, L):
+        return UPDATE_FAILED
+    if use_gate:
+        Siy = np.empty((1, m))
+        cholesky_solve_rows(L, y.reshape(1, m), Siy)
+        d2 = 0.0
+        for a in range(m):
+            d2 += y[a] * Siy[0, a]
+        if not d2 <= gate:
+            return UPDATE_GATED
+    K = np.empty((n, m))
+    cholesky_solve_rows(L, PHt, K)                     # Eq. (37): K = P H^T S^-1
+    if hold_row >= 0:
+        for a in range(m):
+            K[hold_row, a] = 0.0
+    total = 0.0
+    for i in range(n):
+        s = 0.0
+        for a in range(m):
+            s += K[i, a] * y[a]
+        dz[i] = s                                       # Eq. (40)
+        total += s
+    if not math.isfinite(total):
+        return UPDATE_FAILED
+    A = np.empty((n, n))                                # Eq. (44), Joseph: A P A^T + K W K^T
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for a in range(m):
+                s += K[i, a] * H[a, j]
+            A[i, j] = (1.0 if i == j else 0.0) - s
+    AP = A @ P
+    KW = K @ W
+    for i in range(n):
+        for j in range(i, n):
+            s = 0.0
+            for k in range(n):
+                s += AP[i, k] * A[j, k]
+            t = 0.0
+            for a in range(m):
+                t += KW[i, a] * K[j, a]
+            P_out[i, j] = s + t
+    for i in range(n):
+        for j in range(i + 1, n):
+            P_out[j, i] = P_out[i, j]
+    return UPDATE_APPLIED
+
+
+@kernel
+def inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out):
+    """Eqs. (41)-(43): ``p``, ``v``, the biases in place; the attitude ``q_new = q(-eps) (x) q``
+    into ``q_out``, ``R_out``; the mounting ``R_m R(0, dm)`` into ``Rm_out`` with ``mounting``."""
+    for i in range(3):
+        p[i] += dz[_IP + i]
+        v[i] += dz[_IV + i]
+    ex, ey, ez = -dz[_IA], -dz[_IA + 1], -dz[_IA + 2]
+    ang = math.sqrt(ex * ex + ey * ey + ez * ez)
+    if ang > 1e-12:
+        k = math.sin(0.5 * ang) / ang
+        ax, ay, az, aw = k * ex, k * ey, k * ez, math.cos(0.5 * ang)
+    else:
+        ax, ay, az, aw = 0.5 * ex, 0.5 * ey, 0.5 * ez, 1.0
+    bx, by, bz, bw = q[0], q[1], q[2], q[3]
+    nx = aw * bx + ax * bw + ay * bz - az * by
+    ny = aw * by - ax * bz + ay * bw + az * bx
+    nz = aw * bz + ax * by - ay * bx + az * bw
+    nw = aw * bw - ax * bx - ay * by - az * bz
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz + nw * nw)
+    q_out[0], q_out[1], q_out[2], q_out[3] = nx / norm, ny / norm, nz / norm, nw / norm
+    _rotmat(q_out[0], q_out[1], q_out[2], q_out[3], R_out)
+    for i in range(3):
+        ba[i] += dz[_IBA + i]
+        bg[i] += dz[_IBG + i]
+    if mounting:
+        px, py, pz = 0.0, dz[_IM], dz[_IM + 1]
+        ang = math.sqrt(px * px + py * py + pz * pz)
+        if ang < 1e-12:
+            mx, my, mz, mw = 0.5 * px, 0.5 * py, 0.5 * pz, 1.0
+        else:
+            k = math.sin(0.5 * ang) / ang
+            mx, my, mz, mw = k * px, k * py, k * pz, math.cos(0.5 * ang)
+        D = np.empty((3, 3))
+        _rotmat(mx, my, mz, mw, D)
+        for i in range(3):
+            for j in range(3):
+                Rm_out[i, j] = Rm[i, 0] * D[0, j] + Rm[i, 1] * D[1, j] + Rm[i, 2] * D[2, j]
+
+
+@kernel
+def constraint_update(R, Rm, v, rows, W, full_jacobian, mounting, hold_row, p, ba, bg, q, P,
+                      q_out, R_out, Rm_out, P_out):
+    """The non-holonomic / standstill update (Eqs. (45)-(47), rows (3)) in one call: the body
+    velocity ``rows`` should be zero, with noise ``W``: :func:`body_speed_rows`, then
+    :func:`joseph_update` (no gate) and :func:`inject`. Returns the update's outcome; unless
+    ``UPDATE_APPLIED``, nothing is written."""
+    k, n = rows.shape[0], P.shape[0]
+    pred, H, dz = np.empty(k), np.empty((k, n)), np.empty(n)
+    body_speed_rows(R, Rm, v, rows, full_jacobian, mounting, pred, H)
+    outcome = joseph_update(P, H, W, -pred, 0.0, False, hold_row, P_out, dz)
+    if outcome == UPDATE_APPLIED:
+        inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out)
+    return outcome
+
+
+_warm = False
+
+
+def warm_up(n: int = 17) -> None:
+    """Compile (or load from the cache) every kernel of this module now, with the argument types
+    the filter uses, so that the first sample of a drive does not wait for the compiler."""
+    global _warm
+    if _warm:
+        return
+    v3, P = np.zeros(3), np.eye(n)
+    q, R = np.array([0.0, 0.0, 0.0, 1.0]), np.eye(3)
+    propagate(0.01, 1.0, v3, v3, v3.copy(), v3.copy(), v3, v3.copy(), v3.copy(), q, R, v3.copy(), v3.copy(), P,
+              np.zeros(n), np.empty(4), np.empty((3, 3)), np.empty((n, n)))
+    H = np.zeros((2, n))
+    body_speed_rows(R, R, v3, np.array([1, 2], dtype=np.int64), True, True, np.empty(2), H)
+    dz = np.zeros(n)
+    joseph_update(P, H, np.eye(2), np.zeros(2), 1.0, True, -1, np.empty((n, n)), dz)
+    inject(dz, v3.copy(), v3.copy(), q, v3.copy(), v3.copy(), R, True, np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
+    constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, True, -1, v3.copy(),
+                      v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
+    _warm = True
