@@ -26,19 +26,22 @@ __all__ = ["AVAILABLE", "enabled", "kernel"]
 
 F = TypeVar("F", bound=Callable)
 
-_numba: Optional[ModuleType]
-try:  # the `fast` extra
-    import numba as _numba
-except ImportError:  # pragma: no cover - depends on the environment
-    _numba = None
+_SWITCHED_OFF = os.environ.get("VEHICLE_ESTIMATION_COMPILED", "1") == "0"
+
+_numba: Optional[ModuleType] = None
+if not _SWITCHED_OFF:   # switched off, numba is not even imported (it costs ~60 MiB per process)
+    try:  # the `fast` extra
+        import numba as _numba
+    except ImportError:  # pragma: no cover - depends on the environment
+        _numba = None
 
 AVAILABLE = _numba is not None
 
 
 def enabled() -> bool:
     """Whether filters built now use their compiled kernels: numba is installed and the
-    environment does not say ``VEHICLE_ESTIMATION_COMPILED=0``."""
-    return AVAILABLE and os.environ.get("VEHICLE_ESTIMATION_COMPILED", "1") != "0"
+    environment did not say ``VEHICLE_ESTIMATION_COMPILED=0`` when this module was imported."""
+    return AVAILABLE
 
 
 def kernel(fn: F) -> F:

@@ -257,7 +257,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         if select is not None:
             raise ValueError("the variational update takes every measurement channel (select=None)")
         z = np.asarray(z, dtype=float).reshape(self.m)
-        if not np.isfinite(z).all():
+        if not all(map(math.isfinite, z)):
             self.rejected_measurements += 1
             self.last_iterations = 0
             return np.full(self.m, np.nan)
@@ -318,6 +318,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         n, m = self.n, self.m
         innovation, Czz, Pxz = np.empty(m), np.empty((m, m)), np.empty((n, m))
         x, P, scale, K, Pzz = np.empty(n), np.empty((n, n)), np.empty((m, m)), np.empty((n, m)), np.empty((m, m))
+        # (all new arrays: each is kept as a state or a last_* attribute, or handed to _fallback)
         x_pred, P_pred, dof_pred, scale_pred = self._x, self._P, self._dof, self._scale
         outcome = vb_update(z, x_pred, P_pred, float(dof_pred), scale_pred, H, c, self.vb.iterations,
                             self.vb.r_estimate == "mean", innovation, Czz, Pxz, x, P, scale, K, Pzz)
