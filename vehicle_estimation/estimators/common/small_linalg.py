@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from vehicle_estimation.estimators.common.compiled import kernel
 
-__all__ = ["all_finite", "cholesky_lower", "cholesky_solve_rows", "valid_moments"]
+__all__ = ["affine_moments", "all_finite", "cholesky_lower", "cholesky_solve_rows", "kalman_correct",
+           "times_transpose", "valid_moments"]
 
 
 @kernel
@@ -72,3 +75,67 @@ def all_finite(x, P):
             if not math.isfinite(P[i, k]):
                 return False
     return True
+
+
+@kernel
+def times_transpose(A, B, out):
+    """``out = A B^T``."""
+    for i in range(A.shape[0]):
+        for a in range(B.shape[0]):
+            s = 0.0
+            for k in range(A.shape[1]):
+                s += A[i, k] * B[a, k]
+            out[i, a] = s
+
+
+@kernel
+def affine_moments(z, x, P, H, c, innovation, Pxz, Czz):
+    """The moments of ``h = H x + c`` at ``N(x, P)``: ``P_xz = P H^T``, ``C_zz = H P H^T``
+    (symmetrised) and the innovation ``z - H x - c``; False where any is not finite."""
+    n, m = x.shape[0], z.shape[0]
+    times_transpose(P, H, Pxz)
+    finite = True
+    for a in range(m):
+        zh = c[a]
+        for k in range(n):
+            zh += H[a, k] * x[k]
+        innovation[a] = z[a] - zh
+        finite = finite and math.isfinite(innovation[a])
+        for b in range(m):
+            s = 0.0
+            for k in range(n):
+                s += H[a, k] * Pxz[k, b]
+            Czz[a, b] = s
+    for a in range(m):
+        for b in range(a, m):
+            v = 0.5 * (Czz[a, b] + Czz[b, a])
+            Czz[a, b] = v
+            Czz[b, a] = v
+            finite = finite and math.isfinite(v)
+        for i in range(n):
+            finite = finite and math.isfinite(Pxz[i, a])
+    return finite
+
+
+@kernel
+def kalman_correct(x_pred, P_pred, K, Pzz, innovation, x_out, P_out):
+    """``x_out = x + K nu`` and ``P_out = P - K P_zz K^T`` (symmetric by construction)."""
+    n, m = K.shape[0], K.shape[1]
+    KPzz = np.empty((n, m))
+    for i in range(n):
+        for b in range(m):
+            s = 0.0
+            for a in range(m):
+                s += K[i, a] * Pzz[a, b]
+            KPzz[i, b] = s
+    for i in range(n):
+        s = x_pred[i]
+        for a in range(m):
+            s += K[i, a] * innovation[a]
+        x_out[i] = s
+        for j in range(i, n):
+            kpk = 0.0
+            for a in range(m):
+                kpk += KPzz[i, a] * K[j, a]
+            P_out[i, j] = P_pred[i, j] - kpk
+            P_out[j, i] = P_out[i, j]

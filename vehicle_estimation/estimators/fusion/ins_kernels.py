@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from vehicle_estimation.estimators.common.compiled import kernel
-from vehicle_estimation.estimators.common.small_linalg import cholesky_lower, cholesky_solve_rows
+from vehicle_estimation.estimators.common.small_linalg import cholesky_lower, cholesky_solve_rows, times_transpose
 
 __all__ = ["UPDATE_APPLIED", "UPDATE_GATED", "UPDATE_FAILED", "body_speed_rows", "constraint_update", "inject",
            "joseph_update",
@@ -143,12 +143,7 @@ def joseph_update(P, H, W, y, gate, use_gate, hold_row, P_out, dz):
     n = P.shape[0]
     m = H.shape[0]
     PHt = np.empty((n, m))
-    for i in range(n):
-        for a in range(m):
-            s = 0.0
-            for k in range(n):
-                s += P[i, k] * H[a, k]
-            PHt[i, a] = s
+    times_transpose(P, H, PHt)
     S = np.empty((m, m))
     for a in range(m):
         for b in range(m):

@@ -17,7 +17,8 @@ import numpy as np
 from vehicle_estimation.contract.vehicle import VehicleParams
 from vehicle_estimation.estimators.common import small_linalg
 from vehicle_estimation.estimators.common.compiled import kernel
-from vehicle_estimation.estimators.common.small_linalg import cholesky_lower, cholesky_solve_rows
+from vehicle_estimation.estimators.common.small_linalg import (affine_moments, cholesky_lower, cholesky_solve_rows,
+                                                               kalman_correct, times_transpose)
 from vehicle_estimation.estimators.state import vehicle_model as vm
 
 __all__ = ["affine_update", "cubature_predict", "vb_update", "CompiledModel", "VB_OK", "VB_REJECTED", "VB_FAILED", "warm_up"]
@@ -191,35 +192,7 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, iterations, r_mean,
     result is not finite (the caller falls back to the plain correction)."""
     n = x_pred.shape[0]
     m = z.shape[0]
-    # Moments of the prediction: z_hat = H x + c, P_xz = P H^T, C_zz = H P H^T (symmetrised).
-    for i in range(n):
-        for a in range(m):
-            s = 0.0
-            for k in range(n):
-                s += P_pred[i, k] * H[a, k]
-            Pxz[i, a] = s
-    finite = True
-    for a in range(m):
-        zh = c[a]
-        for k in range(n):
-            zh += H[a, k] * x_pred[k]
-        innovation[a] = z[a] - zh
-        finite = finite and math.isfinite(innovation[a])
-        for b in range(m):
-            s = 0.0
-            for k in range(n):
-                s += H[a, k] * Pxz[k, b]
-            Czz[a, b] = s
-    for a in range(m):
-        for b in range(a, m):
-            v = 0.5 * (Czz[a, b] + Czz[b, a])
-            Czz[a, b] = v
-            Czz[b, a] = v
-            finite = finite and math.isfinite(v)
-    for i in range(n):
-        for a in range(m):
-            finite = finite and math.isfinite(Pxz[i, a])
-    if not finite:
+    if not affine_moments(z, x_pred, P_pred, H, c, innovation, Pxz, Czz):
         return VB_REJECTED
     L = np.empty((m, m))
     if not (math.isfinite(dof_pred) and cholesky_lower(scale_pred, L)):
@@ -234,24 +207,18 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, iterations, r_mean,
     P = P_pred.copy()
     e = np.empty(m)
     HP = np.empty((m, n))
-    KPzz = np.empty((n, m))
+    HPHt = np.empty((m, m))
     for _ in range(iterations):
         for a in range(m):
             s = c[a]
             for k in range(n):
                 s += H[a, k] * x[k]
             e[a] = z[a] - s
-            for k in range(n):
-                t = 0.0
-                for j in range(n):
-                    t += H[a, j] * P[j, k]
-                HP[a, k] = t
+        times_transpose(H, P, HP)        # H P (P is symmetric)
+        times_transpose(HP, H, HPHt)
         for a in range(m):
             for b in range(m):
-                hph = 0.0
-                for k in range(n):
-                    hph += HP[a, k] * H[b, k]
-                scale_out[a, b] = e[a] * e[b] + hph
+                scale_out[a, b] = e[a] * e[b] + HPHt[a, b]
         for a in range(m):
             for b in range(a, m):
                 v = scale_pred[a, b] + 0.5 * (scale_out[a, b] + scale_out[b, a])
@@ -263,23 +230,7 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, iterations, r_mean,
         if not cholesky_lower(Pzz_out, L):
             return VB_FAILED
         cholesky_solve_rows(L, Pxz, K_out)          # K = P_xz P_zz^-1
-        for i in range(n):
-            for b in range(m):
-                s = 0.0
-                for a in range(m):
-                    s += K_out[i, a] * Pzz_out[a, b]
-                KPzz[i, b] = s
-        for i in range(n):
-            s = x_pred[i]
-            for a in range(m):
-                s += K_out[i, a] * innovation[a]
-            x[i] = s
-            for j in range(i, n):
-                kpk = 0.0
-                for a in range(m):
-                    kpk += KPzz[i, a] * K_out[j, a]
-                P[i, j] = P_pred[i, j] - kpk
-                P[j, i] = P[i, j]
+        kalman_correct(x_pred, P_pred, K_out, Pzz_out, innovation, x, P)
     for i in range(n):
         x_out[i] = x[i]
         if not math.isfinite(x[i]):
@@ -301,51 +252,18 @@ def affine_update(z, x_pred, P_pred, H, c, R, innovation, x_out, P_out, K_out, P
     closed-form moments, ``P_zz = H P H^T + R``, ``K = P_xz P_zz^-1``, ``x + K (z - z_hat)``,
     ``P - K P_zz K^T`` (symmetrised). False where ``P_zz`` is not positive definite or a moment
     is not finite (outputs then undefined; the caller runs the numpy update)."""
-    n = x_pred.shape[0]
-    m = z.shape[0]
+    n, m = x_pred.shape[0], z.shape[0]
     Pxz = np.empty((n, m))
-    for i in range(n):
-        for a in range(m):
-            s = 0.0
-            for k in range(n):
-                s += P_pred[i, k] * H[a, k]
-            Pxz[i, a] = s
+    if not affine_moments(z, x_pred, P_pred, H, c, innovation, Pxz, Pzz_out):
+        return False
     for a in range(m):
-        zh = c[a]
-        for k in range(n):
-            zh += H[a, k] * x_pred[k]
-        innovation[a] = z[a] - zh
-        if not math.isfinite(innovation[a]):
-            return False
         for b in range(m):
-            s = 0.0
-            for k in range(n):
-                s += H[a, k] * Pxz[k, b]
-            Pzz_out[a, b] = s
-    for a in range(m):
-        for b in range(a, m):
-            v = 0.5 * (Pzz_out[a, b] + Pzz_out[b, a])
-            Pzz_out[a, b] = v + R[a, b]
-            Pzz_out[b, a] = v + R[b, a]
+            Pzz_out[a, b] += R[a, b]
     L = np.empty((m, m))
     if not cholesky_lower(Pzz_out, L):
         return False
     cholesky_solve_rows(L, Pxz, K_out)
-    for i in range(n):
-        s = x_pred[i]
-        for a in range(m):
-            s += K_out[i, a] * innovation[a]
-        x_out[i] = s
-    for i in range(n):
-        for j in range(i, n):
-            kpk = 0.0
-            for a in range(m):
-                t = 0.0
-                for b in range(m):
-                    t += K_out[i, b] * Pzz_out[b, a]
-                kpk += t * K_out[j, a]
-            P_out[i, j] = P_pred[i, j] - kpk
-            P_out[j, i] = P_out[i, j]
+    kalman_correct(x_pred, P_pred, K_out, Pzz_out, innovation, x_out, P_out)
     return True
 
 
