@@ -1,10 +1,11 @@
 """Compiled forms of the CKF/VB-ACKF step on the paper-004 model (see ``common.compiled``).
 
 :func:`cubature_predict` is :meth:`SigmaPointKalmanFilter.predict` with the cubature points
-through :func:`vehicle_model.transition` (Eqs. 1-9, the same sub-steps, load transfer, Dugoff
-tyres and fallbacks), and :func:`vb_iterate` the fixed-``N`` variational iterations of
-:meth:`VariationalBayesCKF._iterate_affine` (Eqs. 11-13). Both are written per point and per
-wheel over scalars; the numpy code they replace is their test oracle (``test_model_kernels``).
+through :func:`vehicle_model.transition` (Eqs. 1-9: the same sub-steps, load transfer, Dugoff
+tyres and fallbacks); :func:`affine_update` is :meth:`SigmaPointKalmanFilter.update` for the
+affine IMU measurement; :func:`vb_update` is :meth:`VariationalBayesCKF.update` with its fixed
+``N`` variational iterations (Eqs. 11-13). They are written per point and per wheel over
+scalars; the numpy code they replace is their test oracle (``test_model_kernels``).
 """
 
 from __future__ import annotations
