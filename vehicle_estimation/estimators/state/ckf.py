@@ -188,9 +188,8 @@ class VehicleStateCKF(VehicleStateCore):
         model = model_kernels.CompiledModel(self.params, cfg.min_speed, cfg.max_substep, cfg.wheel_slip_forces)
         self._filter.compiled_predict = model.predict if on else None
         self._filter.compiled_update = model.update if on else None
-        if hasattr(self._filter, "compiled_iterations"):
-            self._filter.compiled_iterations = on
         self.compiled_checks = on
+        self._compiled_model = model if on else None
 
     def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
         """Factory hook: the filter on the model closures ``f``, ``h`` (called once by
@@ -225,6 +224,9 @@ class VehicleStateCKF(VehicleStateCore):
             else:
                 Q = self.process_noise * (dt / cfg.nominal_dt) if cfg.scale_q_with_dt else self._filter.Q
                 Q = self._with_extra_vx_noise(Q, dt)
+                if self._fused_step(dt, inputs, Q, z):
+                    self.t = t
+                    return self._after_update(inputs)
                 try:
                     self._filter.predict(dt, inputs, Q=Q)
                 except np.linalg.LinAlgError:
@@ -242,10 +244,22 @@ class VehicleStateCKF(VehicleStateCore):
                     self._filter.update(z, inputs)
                 except np.linalg.LinAlgError:
                     self._filter._x[:] = np.nan   # handled as a numerical failure below
+        return self._after_update(inputs)
+
+    def _fused_step(self, dt: float, inputs: VehicleInputs, Q: np.ndarray, z: np.ndarray) -> bool:
+        """Predict and update by one compiled call where the filter has one (the VB-ACKF) and
+        ``z`` is finite; False: the caller runs the two steps."""
+        fused = getattr(self._filter, "fused_step", None)
+        if fused is None or not (math.isfinite(z[0]) and math.isfinite(z[1]) and math.isfinite(z[2])):
+            return False
+        return bool(fused(dt, inputs, Q, z))
+
+    def _after_update(self, inputs: VehicleInputs) -> bool:
+        """After the update: the numerical-failure check, the counter, the wheel-speed update."""
         if self._reinitialised_after_failure(inputs):
             return False
         self.updates += 1
-        if not cfg.wheel_slip_forces:
+        if not self.config.wheel_slip_forces:
             self._update_speed_from_wheels(inputs)
         return True
 

@@ -22,7 +22,8 @@ from vehicle_estimation.estimators.common.small_linalg import (affine_moments, c
                                                                kalman_correct, times_transpose)
 from vehicle_estimation.estimators.state import vehicle_model as vm
 
-__all__ = ["affine_update", "cubature_predict", "vb_update", "CompiledModel", "VB_OK", "VB_REJECTED", "VB_FAILED", "warm_up"]
+__all__ = ["affine_update", "cubature_predict", "vb_step", "vb_update", "STEP_NO_FACTOR",
+           "STEP_PREDICTION_NOT_FINITE", "CompiledModel", "VB_OK", "VB_REJECTED", "VB_FAILED", "warm_up"]
 
 # Rows of the per-wheel constants (the fields of vehicle_model._WheelGeometry, in order).
 _X_FROM_R, _Y_FROM_VY, _Y_FROM_R, _STEERED, _ALPHA_SIGN, _C_ALPHA, _LOAD_STATIC, _FZ_NOMINAL, \
@@ -32,11 +33,10 @@ _GRAVITY, _RADIUS, _C_SIGMA, _LOAD_EXPONENT, _FRICTION, _DRAG, _YAW_INERTIA, _LF
 
 
 @kernel
-def _accelerations(vx, vy, r, ax, ay, delta, sin_t, cos_t, mass, omega, wheel_torque, mx, my,
+def _accelerations(vx, vy, r, ax, ay, delta, cd, sd, sin_t, cos_t, mass, omega, wheel_torque, mx, my,
                    from_slip, torque_known, G, S, min_speed):
     """Eqs. 2-9 at one state: the model ``(ax, ay, r')`` (``vehicle_model._body_accelerations``)."""
     g = S[_GRAVITY]
-    cd, sd = math.cos(delta), math.sin(delta)
     ax_spec = ax + g * sin_t
     n_exp = S[_LOAD_EXPONENT]
     sum_x = 0.0
@@ -99,8 +99,9 @@ def _transition_point(X, j, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_t
     vx, vy, r, ax, ay = X[j, 0], X[j, 1], X[j, 2], X[j, 3], X[j, 4]
     known = from_slip or torque_known
     h = dt / n_sub
+    cd, sd = math.cos(delta), math.sin(delta)
     for _ in range(n_sub):
-        ax_m, ay_m, rdot = _accelerations(vx, vy, r, ax, ay, delta, sin_t, cos_t, mass, omega,
+        ax_m, ay_m, rdot = _accelerations(vx, vy, r, ax, ay, delta, cd, sd, sin_t, cos_t, mass, omega,
                                           wheel_torque, mx, my, from_slip, torque_known, G, S, min_speed)
         ax_used = ax_m if known else ax
         vx_new = vx + h * (ax_used + r * vy)
@@ -109,7 +110,7 @@ def _transition_point(X, j, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_t
         r = r + h * rdot
         ax = ax_used
         ay = ay_m
-    ax_m, ay_m, rdot = _accelerations(vx, vy, r, ax, ay, delta, sin_t, cos_t, mass, omega,
+    ax_m, ay_m, rdot = _accelerations(vx, vy, r, ax, ay, delta, cd, sd, sin_t, cos_t, mass, omega,
                                       wheel_torque, mx, my, from_slip, torque_known, G, S, min_speed)
     if known:
         ax = ax_m
@@ -247,6 +248,33 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, iterations, r_mean,
     return VB_OK
 
 
+STEP_NO_FACTOR, STEP_PREDICTION_NOT_FINITE = 3, 4
+
+
+@kernel
+def vb_step(x, P, Q, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_torque, slip_forces, torque_known,
+            G, S, min_speed, rho, z, H, c, dof, scale, iterations, r_mean, x_prior, P_prior, scale_pred,
+            innovation, Czz, Pxz, x_out, P_out, scale_out, K_out, Pzz_out):
+    """One VB-ACKF step in one call: :func:`cubature_predict` into ``x_prior``, ``P_prior``; the
+    inverse-Wishart prediction ``nu = rho (nu - d - 1) + d + 1``, ``V = rho V`` (Fig. 3) into
+    ``scale_pred`` (its ``nu`` is ``rho (dof - d - 1) + d + 1``, recomputed by the caller);
+    then :func:`vb_update`. Returns its outcome, or ``STEP_NO_FACTOR`` (``P`` has no Cholesky
+    factor: nothing written) or ``STEP_PREDICTION_NOT_FINITE`` (the prediction is written, no
+    update)."""
+    if not cubature_predict(x, P, Q, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_torque, slip_forces,
+                            torque_known, G, S, min_speed, x_prior, P_prior):
+        return STEP_NO_FACTOR
+    m = z.shape[0]
+    for a in range(m):
+        for b in range(m):
+            scale_pred[a, b] = rho * scale[a, b]
+    if not small_linalg.all_finite(x_prior, P_prior):
+        return STEP_PREDICTION_NOT_FINITE
+    d1 = m + 1.0
+    return vb_update(z, x_prior, P_prior, rho * (dof - d1) + d1, scale_pred, H, c, iterations, r_mean,
+                     innovation, Czz, Pxz, x_out, P_out, scale_out, K_out, Pzz_out)
+
+
 @kernel
 def affine_update(z, x_pred, P_pred, H, c, R, innovation, x_out, P_out, K_out, Pzz_out):
     """``SigmaPointKalmanFilter.update`` for an affine ``h = H x + c`` and a fixed ``R``: the
@@ -291,17 +319,23 @@ class CompiledModel:
         (``dt <= 0``, or a ``P`` without a Cholesky factor)."""
         if not dt > 0.0:
             return None
+        x_out = np.empty_like(x)
+        P_out = np.empty_like(P)
+        arguments = (x, P, Q, *self.model_arguments(dt, inputs), x_out, P_out)
+        ok = cubature_predict(*arguments)
+        return (x_out, P_out) if ok else None
+
+    def model_arguments(self, dt: float, inputs: vm.VehicleInputs) -> tuple:
+        """The arguments of :func:`cubature_predict` from ``dt`` to ``min_speed``: the step's
+        inputs and this parameter set's constants."""
         params = self.params
         torque_known = inputs.torques_valid
         wheel_torque = vm.wheel_torques(inputs, params) if torque_known else self._no_torque
         theta = float(inputs.slope)
         n_sub = max(1, int(math.ceil(dt / self.max_substep - 1e-9)))
-        x_out = np.empty_like(x)
-        P_out = np.empty_like(P)
-        ok = cubature_predict(x, P, Q, float(dt), n_sub, float(inputs.steer_angle), math.sin(theta),
-                              math.cos(theta), inputs.mass_or(params), inputs.wheel_speeds, wheel_torque,
-                              self.slip_forces, torque_known, self.G, self.S, self.min_speed, x_out, P_out)
-        return (x_out, P_out) if ok else None
+        return (float(dt), n_sub, float(inputs.steer_angle), math.sin(theta), math.cos(theta),
+                inputs.mass_or(params), inputs.wheel_speeds, wheel_torque, self.slip_forces, torque_known,
+                self.G, self.S, self.min_speed)
 
     @staticmethod
     def update(z: np.ndarray, x: np.ndarray, P: np.ndarray, H: np.ndarray, c: np.ndarray,
@@ -332,6 +366,11 @@ def warm_up() -> None:
               np.empty((5, 3)), np.empty(5), np.empty((5, 5)), np.empty((3, 3)), np.empty((5, 3)), np.empty((3, 3)))
     affine_update(np.zeros(3), x, P, H, c, np.eye(3), np.empty(3), np.empty(5), np.empty((5, 5)),
                   np.empty((5, 3)), np.empty((3, 3)))
+    step_arguments = (x, P, 0.01 * np.eye(5), *model.model_arguments(0.01, vm.VehicleInputs(wheel_speeds=np.full(4, 30.0))),
+                      0.9, np.zeros(3), H, c, 8.0, np.eye(3), 1, True, np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
+                      np.empty(3), np.empty((3, 3)), np.empty((5, 3)), np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
+                      np.empty((5, 3)), np.empty((3, 3)))
+    vb_step(*step_arguments)
     small_linalg.valid_moments(x, P, np.empty_like(P))
     small_linalg.all_finite(x, P)
     _warm = True

@@ -80,7 +80,8 @@ from vehicle_estimation.contract.vehicle import VehicleParams
 from vehicle_estimation.estimators.common import compiled
 from vehicle_estimation.estimators.common.sigma_points import as_matrix, is_positive_definite
 from vehicle_estimation.estimators.state.ckf import CubatureKalmanFilter, VehicleStateCKF, VehicleStateConfig
-from vehicle_estimation.estimators.state.model_kernels import VB_FAILED, VB_REJECTED, vb_update
+from vehicle_estimation.estimators.state.model_kernels import (STEP_NO_FACTOR, STEP_PREDICTION_NOT_FINITE, VB_FAILED,
+                                                               VB_REJECTED, CompiledModel, vb_step, vb_update)
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 
 __all__ = ["VBConfig", "VariationalBayesCKF", "VehicleStateVBACKF"]
@@ -166,6 +167,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         # The fixed-N iterations by the compiled kernel (same numbers to 1e-12; the numpy loop
         # below is its definition and test oracle).
         self.compiled_iterations = compiled.enabled()
+        self.compiled_model: Optional[CompiledModel] = None   # for fused_step (set by its owner)
         self.reset_noise_statistics()
 
     # -- noise statistics ----------------------------------------------------------------
@@ -315,14 +317,53 @@ class VariationalBayesCKF(CubatureKalmanFilter):
     def _update_compiled(self, z: np.ndarray, H: np.ndarray, c: np.ndarray) -> np.ndarray:
         """:meth:`update` by the compiled kernel (affine ``h``, fixed ``N``): the same steps, the
         same outcomes (rejection, fallback), the same numbers to 1e-12."""
-        n, m = self.n, self.m
-        innovation, Czz, Pxz = np.empty(m), np.empty((m, m)), np.empty((n, m))
-        x, P, scale, K, Pzz = np.empty(n), np.empty((n, n)), np.empty((m, m)), np.empty((n, m)), np.empty((m, m))
-        # (all new arrays: each is kept as a state or a last_* attribute, or handed to _fallback)
+        out = self._kernel_outputs()
         x_pred, P_pred, dof_pred, scale_pred = self._x, self._P, self._dof, self._scale
         outcome = vb_update(z, x_pred, P_pred, float(dof_pred), scale_pred, H, c, self.vb.iterations,
-                            self.vb.r_estimate == "mean", innovation, Czz, Pxz, x, P, scale, K, Pzz)
+                            self.vb.r_estimate == "mean", *out)
+        self._take_outcome(outcome, out, x_pred, P_pred, dof_pred, scale_pred)
+        return out[0]
+
+    def fused_step(self, dt: float, inputs, Q: np.ndarray, z: np.ndarray) -> bool:
+        """:meth:`predict` and :meth:`update` (finite ``z``) in one compiled call, with their
+        outcomes; False, with nothing changed, where that call cannot serve (no compiled model,
+        a non-affine ``h``, early stopping, ``dt <= 0``, or a ``P`` without a Cholesky factor):
+        the caller then runs the two steps."""
+        model = self.compiled_model
+        if model is None or not self.compiled_iterations or self.h_affine is None or self.vb.tolerance != 0.0 \
+                or not dt > 0.0:
+            return False
+        n, m = self.n, self.m
+        x_prior, P_prior, scale_pred = np.empty(n), np.empty((n, n)), np.empty((m, m))
+        out = self._kernel_outputs()
+        rho = self.forgetting_factor(dt)
+        arguments = (self._x, self._P, Q, *model.model_arguments(dt, inputs), rho, z, *self.h_affine(inputs),
+                     float(self._dof), self._scale, self.vb.iterations, self.vb.r_estimate == "mean",
+                     x_prior, P_prior, scale_pred, *out)
+        outcome = vb_step(*arguments)
+        if outcome == STEP_NO_FACTOR:
+            return False
+        d1 = self.m + 1.0
+        dof_pred = rho * (self._dof - d1) + d1          # as predict(), the same arithmetic
+        self.x_prior, self.P_prior = x_prior.copy(), P_prior.copy()
+        if outcome == STEP_PREDICTION_NOT_FINITE:
+            self._x, self._P, self._dof, self._scale = x_prior, P_prior, dof_pred, scale_pred
+        else:
+            self._take_outcome(outcome, out, x_prior, P_prior, dof_pred, scale_pred)
+        return True
+
+    def _kernel_outputs(self) -> tuple[np.ndarray, ...]:
+        """New arrays for ``(innovation, C_zz, P_xz, x, P, V, K, P_zz)``: each is kept as a state
+        or a ``last_*`` attribute, or handed to :meth:`_fallback`."""
+        n, m = self.n, self.m
+        return (np.empty(m), np.empty((m, m)), np.empty((n, m)), np.empty(n), np.empty((n, n)), np.empty((m, m)),
+                np.empty((n, m)), np.empty((m, m)))
+
+    def _take_outcome(self, outcome: int, out: tuple, x_pred, P_pred, dof_pred: float, scale_pred) -> None:
+        """The state after a compiled update from the prediction ``(x, P, nu, V)_pred``."""
+        innovation, Czz, Pxz, x, P, scale, K, Pzz = out
         if outcome == VB_REJECTED:
+            self._x, self._P, self._dof, self._scale = x_pred, P_pred, dof_pred, scale_pred
             self.rejected_measurements += 1
             self.last_iterations = 0
         elif outcome == VB_FAILED:
@@ -331,7 +372,6 @@ class VariationalBayesCKF(CubatureKalmanFilter):
             self._x, self._P, self._dof, self._scale = x, P, dof_pred + 1.0, scale
             self.last_gain, self.last_innovation, self.last_innovation_covariance = K, innovation, Pzz
             self.last_iterations = self.vb.iterations
-        return innovation
 
     def _iterate_affine(self, z, innovation, Czz, Pxz, x_pred, P_pred, dof, scale_pred, H, c) -> None:
         """The iterations of :meth:`update` for an affine ``h = H x + c`` and a fixed ``N``: the
@@ -430,6 +470,12 @@ class VehicleStateVBACKF(VehicleStateCKF):
         cfg = self.config
         return VariationalBayesCKF(f, h, self.process_noise, cfg.R, self._x0(None), cfg.P0, vb=vb,
                                    h_affine=self._h_affine)
+
+    def use_compiled(self, on: bool) -> None:
+        """As the CKF's, and the variational iterations and the fused step too."""
+        super().use_compiled(on)
+        self._filter.compiled_iterations = on
+        self._filter.compiled_model = self._compiled_model
 
     def _reinitialised_after_failure(self, inputs: VehicleInputs) -> bool:
         """As the CKF's, and the noise statistics go back to the prior too: a failure may
