@@ -69,6 +69,7 @@ from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IM, 
                                                               STATUS_RUNNING, STATUS_WAIT_HEADING,
                                                               STATUS_WAIT_STANDSTILL)
 from vehicle_estimation.estimators.fusion import ins_kernels
+from vehicle_estimation.estimators.fusion.compiled_steps import FusionCompiledSteps
 from vehicle_estimation.estimators.fusion.initialisation import FusionInitialisation
 from vehicle_estimation.estimators.fusion.outputs import FusionOutputs
 
@@ -111,7 +112,7 @@ def _inv_small(S: np.ndarray) -> np.ndarray | None:
     return inv if math.isfinite(float(inv.sum())) else None
 
 
-class FusionEKF(FusionInitialisation, FusionOutputs):
+class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
     """Error-state EKF of paper 003 Alg. 1 with the API in REP-103 terms.
 
     Call order: ``process_imu`` for every IMU sample, ``update_gnss`` /
@@ -287,12 +288,18 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
             dt = t - self._t
             if dt > self.config.max_imu_dt_s:
                 self.events["imu_gap"] += 1
-            self._propagate(dt)
-            self._t = t
             rate = self.config.nh_update_rate_hz
-            if rate is None or t - self._t_nh >= 1.0 / rate - 1e-6:   # float stamps near 1.7e9 s
+            nh_due = rate is None or t - self._t_nh >= 1.0 / rate - 1e-6   # float stamps near 1.7e9 s
+            # Moving for sure (no stationary source): propagation and constraint in one call.
+            if self.compiled and nh_due and not self._stationary_source(t):
                 self._t_nh = t
-                self._nh_update(t)
+                self._imu_step_compiled(t, dt)
+            else:
+                self._propagate(dt)
+                self._t = t
+                if nh_due:
+                    self._t_nh = t
+                    self._nh_update(t)
         self._t = t
         self._f_prev = f
         self._w_prev = w
@@ -409,21 +416,6 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         pred, H = self._body_speed_rows(rows)
         self._update(-pred, H, W, None)
 
-    def _constraint_update_compiled(self, rows: list[int], W: np.ndarray) -> None:
-        """:meth:`_nh_update`'s update by :func:`.ins_kernels.constraint_update` (one call)."""
-        c = self.config
-        hold = IBG + 2 if c.hold_yaw_rate_bias_without_gnss and not self.gnss_aided else -1
-        q, R, Rm, P = np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((N_ERR, N_ERR))
-        res = ins_kernels.constraint_update(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64), W,
-                                            c.full_velocity_jacobian, c.estimate_mounting, hold, self._p, self._ba,
-                                            self._bg, self._q, self._P, q, R, Rm, P)
-        if res == ins_kernels.UPDATE_FAILED:
-            self.rejected["update_numerical"] += 1
-        elif res == ins_kernels.UPDATE_APPLIED:
-            self._q, self._R, self._P = q, R, P
-            if c.estimate_mounting:
-                self._Rm = Rm
-
     def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form).
 
@@ -453,26 +445,6 @@ class FusionEKF(FusionInitialisation, FusionOutputs):
         P = A @ P @ A.T + K @ W @ K.T                     # Eq. (44), Joseph form
         self._P = 0.5 * (P + P.T)
         self._inject(dz)
-        return 1
-
-    def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
-        """:meth:`_update` by :func:`.ins_kernels.joseph_update` and :func:`.ins_kernels.inject`."""
-        c = self.config
-        P, dz = np.empty((N_ERR, N_ERR)), np.empty(N_ERR)
-        hold = IBG + 2 if c.hold_yaw_rate_bias_without_gnss and not self.gnss_aided else -1
-        res = ins_kernels.joseph_update(self._P, H, W, y, 0.0 if gate is None else float(gate), gate is not None,
-                                        hold, P, dz)
-        if res == ins_kernels.UPDATE_FAILED:
-            self.rejected["update_numerical"] += 1
-            return -1
-        if res == ins_kernels.UPDATE_GATED:
-            return 0
-        self._P = P
-        q, R, Rm = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
-        ins_kernels.inject(dz, self._p, self._v, self._q, self._ba, self._bg, self._Rm, c.estimate_mounting, q, R, Rm)
-        self._q, self._R = q, R
-        if c.estimate_mounting:
-            self._Rm = Rm
         return 1
 
     def _inject(self, dz: np.ndarray) -> None:

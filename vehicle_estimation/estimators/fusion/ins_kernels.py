@@ -20,8 +20,8 @@ import numpy as np
 from vehicle_estimation.estimators.common.compiled import kernel
 from vehicle_estimation.estimators.common.small_linalg import cholesky_lower, cholesky_solve_rows, times_transpose
 
-__all__ = ["UPDATE_APPLIED", "UPDATE_GATED", "UPDATE_FAILED", "body_speed_rows", "constraint_update", "inject",
-           "joseph_update",
+__all__ = ["UPDATE_APPLIED", "UPDATE_GATED", "UPDATE_FAILED", "body_speed_rows", "constraint_update", "imu_step",
+           "inject", "joseph_update",
            "propagate", "warm_up"]
 
 UPDATE_APPLIED, UPDATE_GATED, UPDATE_FAILED = 1, 0, -1
@@ -256,6 +256,24 @@ def constraint_update(R, Rm, v, rows, W, full_jacobian, mounting, hold_row, p, b
     return outcome
 
 
+@kernel
+def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, rows, W, full_jacobian,
+             mounting, hold_row, Rm, q_out, R_out, Rm_out, P_out):
+    """:func:`propagate`, then :func:`constraint_update` at the propagated state: one IMU sample
+    of a moving vehicle. The outputs hold the propagation where the update is not applied
+    (its outcome is returned)."""
+    n = P.shape[0]
+    q1, R1, P1 = np.empty(4), np.empty((3, 3)), np.empty((n, n))
+    propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, q1, R1, P1)
+    outcome = constraint_update(R1, Rm, v, rows, W, full_jacobian, mounting, hold_row, p, ba, bg, q1, P1,
+                                q_out, R_out, Rm_out, P_out)
+    if outcome != UPDATE_APPLIED:
+        q_out[:] = q1
+        R_out[:, :] = R1
+        P_out[:, :] = P1
+    return outcome
+
+
 _warm = False
 
 
@@ -276,4 +294,7 @@ def warm_up(n: int = 17) -> None:
     inject(dz, v3.copy(), v3.copy(), q, v3.copy(), v3.copy(), R, True, np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
     constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, True, -1, v3.copy(),
                       v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
+    imu_step(0.01, 1.0, v3, v3, v3.copy(), v3.copy(), v3, v3.copy(), v3.copy(), q, R, v3.copy(), v3.copy(), P,
+             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, True, -1, R, np.empty(4),
+             np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
     _warm = True
