@@ -19,7 +19,8 @@ Sections (``--sections``, default all):
 ``live``
     ``--live-seconds`` of the same drive published at real-time rate to the nodes in live mode
     (no replay sync): CPU share of each node, and the latency from an input's publication to
-    the publication of the output it triggers (p50, p99), per output.
+    the publication of the output it triggers (p50, p99), per output. Beside them, in the same
+    run, the framework floor (:mod:`.bench_floor`): a node that only receives the same topics.
 
 The targets (issues 6 and 15) are printed beside the figures. Timings depend on the machine and on
 what else runs on it: run it on an idle machine and compare like with like.
@@ -32,6 +33,8 @@ import dataclasses
 import json
 import math
 import os
+import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -48,6 +51,7 @@ TARGETS = {
     "in_process_rt": 50.0,      # replay --in-process >= 50x real time on one core
     "cpu_share": 0.15,          # all nodes together < 15 % of one core at real time
     "latency_p99_ms": 2.0,      # p99 input -> output latency
+    "floor_ratio": 2.0,         # all nodes <= 2x four do-nothing nodes on the same topics (live)
     "fusion_imu_us": 25.0,      # median fusion IMU step (compiled)
     "state_step_us": 60.0,      # median CKF / VB-ACKF step (compiled)
     "memory_growth": 0.05,      # < 5 % growth of resident memory, minute 1 -> minute 30
@@ -164,8 +168,13 @@ def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
     executor.add_node(node)
     spinner = threading.Thread(target=lambda: _spin_while(executor, rclpy), daemon=True)
     group.start()
+    # The framework floor, in the same run: rclpy's own cost of receiving the same topics.
+    floor = subprocess.Popen([sys.executable, "-m", "vehicle_estimation.evaluation.bench_floor"],
+                             stdout=subprocess.PIPE, text=True)
     result: dict[str, Any] = {}
     try:
+        if floor.stdout is None or floor.stdout.readline().strip() != "ready":
+            raise RuntimeError("the framework-floor node did not start")
         typestore = get_typestore(Stores.ROS2_JAZZY)
         with AnyReader([bag], default_typestore=typestore) as reader:
             conns = [c for c in reader.connections if c.topic.lstrip("/") in topics.INPUT_TOPICS]
@@ -178,6 +187,7 @@ def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
                 time.sleep(0.1)
             time.sleep(1.0)
             cpu0 = {n.spec.name: cpu_seconds(n.process.pid) for n in group.nodes}
+            floor0 = cpu_seconds(floor.pid)
             t_bag0 = None
             wall0 = time.monotonic()
             for conn, stamp_ns, data in reader.messages(connections=conns):
@@ -198,10 +208,16 @@ def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
             cpu = {n.spec.name: cpu_seconds(n.process.pid) - cpu0[n.spec.name] for n in group.nodes}
             result = {"seconds": wall, "cpu_share": {k: v / wall for k, v in cpu.items()},
                       "cpu_share_total": sum(cpu.values()) / wall,
+                      "floor_share": (cpu_seconds(floor.pid) - floor0) / wall,
                       "latency_ms": {t: {"n": len(v), "p50": 1e3 * float(np.percentile(v, 50)),
                                          "p99": 1e3 * float(np.percentile(v, 99))}
                                      for t, v in latencies.items() if v}}
     finally:
+        floor.send_signal(signal.SIGINT)
+        try:
+            floor.wait(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            floor.kill()
         group.stop()
         executor.shutdown()
         node.destroy_node()
@@ -272,7 +288,7 @@ def format_report(result: dict[str, Any]) -> str:
                   f"{lv['seconds']:.0f} s; CPU share of one core: " +
                   ", ".join(f"{k} {100 * v:.1f} %" for k, v in lv["cpu_share"].items()) +
                   f"; **all nodes {100 * lv['cpu_share_total']:.1f} %** (target < {100 * TARGETS['cpu_share']:g} %: {ok})",
-                  "", "| output (trigger) | samples | p50 [ms] | p99 [ms] |", "|---|---|---|---|"]
+                  "", *_floor_line(lv), "| output (trigger) | samples | p50 [ms] | p99 [ms] |", "|---|---|---|---|"]
         worst = 0.0
         for topic, v in lv["latency_ms"].items():
             lines.append(f"| {topic} | {v['n']} | {v['p50']:.2f} | {v['p99']:.2f} |")
@@ -280,6 +296,18 @@ def format_report(result: dict[str, Any]) -> str:
         ok = "met" if worst < TARGETS["latency_p99_ms"] else "missed"
         lines += ["", f"Worst p99 latency: {worst:.2f} ms (target < {TARGETS['latency_p99_ms']:g} ms: {ok})", ""]
     return "\n".join(lines)
+
+
+def _floor_line(live: dict[str, Any]) -> list[str]:
+    """The nodes' CPU against the framework floor (four do-nothing nodes), same run."""
+    floor = live.get("floor_share")
+    if not floor:
+        return []
+    ratio = live["cpu_share_total"] / (4.0 * floor)
+    ok = "met" if ratio <= TARGETS["floor_ratio"] else "missed"
+    return [f"Framework floor, same run: a node that only receives the same sensor topics (raw, sensor-data "
+            f"QoS, the same executor) takes {100 * floor:.1f} % of one core; the four nodes take "
+            f"**{ratio:.1f}x** four of it (target <= {TARGETS['floor_ratio']:g}x: {ok})", ""]
 
 
 def _compiled_ratios(cores: list[dict[str, Any]]) -> list[str]:
