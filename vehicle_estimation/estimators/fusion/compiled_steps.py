@@ -9,11 +9,13 @@ its ``compiled`` flag is set.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from vehicle_estimation.estimators.fusion import ins_kernels
 from vehicle_estimation.estimators.fusion.config import FusionConfig
-from vehicle_estimation.estimators.fusion.error_state import IBG, N_ERR
+from vehicle_estimation.estimators.fusion.error_state import N_ERR
 
 __all__ = ["FusionCompiledSteps"]
 
@@ -43,18 +45,9 @@ class FusionCompiledSteps:
     _f_prev: np.ndarray | None
     _w_prev: np.ndarray | None
     _w_nh: np.ndarray
-
-    @property
-    def gnss_aided(self) -> bool:   # pragma: no cover - FusionEKF's
-        raise NotImplementedError
-
-    def _update_process_noise(self, dt: float) -> None:   # pragma: no cover - FusionEKF's
-        raise NotImplementedError
-
-    def _held_row(self) -> int:
-        """The gain row held at zero (the yaw-rate bias as a Schmidt consider state without
-        GNSS), or -1."""
-        return IBG + 2 if self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided else -1
+    # FusionEKF's methods these steps share with its numpy path:
+    _update_process_noise: Callable[[float], None]
+    _held_row: Callable[[], int]
 
     def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """``_update`` (Eqs. (37)-(44)) by :func:`.ins_kernels.joseph_update` and

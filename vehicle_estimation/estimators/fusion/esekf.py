@@ -416,6 +416,11 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         pred, H = self._body_speed_rows(rows)
         self._update(-pred, H, W, None)
 
+    def _held_row(self) -> int:
+        """The gain row held at zero (the yaw-rate bias as a Schmidt consider state without
+        GNSS), or -1."""
+        return IBG + 2 if self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided else -1
+
     def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form).
 
@@ -435,8 +440,9 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             if not d2 <= gate:
                 return 0
         K = PHt @ S_inv                                   # Eq. (37)
-        if self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided:
-            K[IBG + 2, :] = 0.0                           # Schmidt: a consider state keeps its value
+        held = self._held_row()
+        if held >= 0:
+            K[held, :] = 0.0                              # Schmidt: a consider state keeps its value
         dz = K @ y                                        # Eq. (40), with the previous error reset to 0
         if not math.isfinite(float(dz.sum())):
             self.rejected["update_numerical"] += 1

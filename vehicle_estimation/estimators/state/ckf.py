@@ -183,13 +183,14 @@ class VehicleStateCKF(VehicleStateCore):
         """Run the time update (and the VB iterations) by the compiled kernels, or by numpy.
         Both give the same estimates to 1e-12 (tests); the bench times them side by side."""
         cfg = self.config
+        model = None
         if on:
             model_kernels.warm_up()
-        model = model_kernels.CompiledModel(self.params, cfg.min_speed, cfg.max_substep, cfg.wheel_slip_forces)
-        self._filter.compiled_predict = model.predict if on else None
-        self._filter.compiled_update = model.update if on else None
+            model = model_kernels.CompiledModel(self.params, cfg.min_speed, cfg.max_substep, cfg.wheel_slip_forces)
+        self._filter.compiled_predict = None if model is None else model.predict
+        self._filter.compiled_update = None if model is None else model.update
         self.compiled_checks = on
-        self._compiled_model = model if on else None
+        self._compiled_model = model
 
     def _make_filter(self, f: Callable, h: Callable) -> CubatureKalmanFilter:
         """Factory hook: the filter on the model closures ``f``, ``h`` (called once by
@@ -215,6 +216,7 @@ class VehicleStateCKF(VehicleStateCore):
             return False
         t, z, dt = sample
         cfg = self.config
+        z_finite = math.isfinite(z[0]) and math.isfinite(z[1]) and math.isfinite(z[2])
         with np.errstate(all="ignore"):   # absurd inputs end as a numerical failure, handled below
             if not self.initialised:
                 vx0 = self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None
@@ -224,7 +226,7 @@ class VehicleStateCKF(VehicleStateCore):
             else:
                 Q = self.process_noise * (dt / cfg.nominal_dt) if cfg.scale_q_with_dt else self._filter.Q
                 Q = self._with_extra_vx_noise(Q, dt)
-                if self._fused_step(dt, inputs, Q, z):
+                if z_finite and self._fused_step(dt, inputs, Q, z):
                     self.t = t
                     return self._after_update(inputs)
                 try:
@@ -232,7 +234,7 @@ class VehicleStateCKF(VehicleStateCore):
                 except np.linalg.LinAlgError:
                     self._filter._x[:] = np.nan   # handled as a numerical failure below
             self.t = t
-            if not (math.isfinite(z[0]) and math.isfinite(z[1]) and math.isfinite(z[2])):
+            if not z_finite:
                 if self._reinitialised_after_failure(inputs):
                     return False
                 self.rejected["nonfinite_measurement"] += 1
@@ -247,12 +249,10 @@ class VehicleStateCKF(VehicleStateCore):
         return self._after_update(inputs)
 
     def _fused_step(self, dt: float, inputs: VehicleInputs, Q: np.ndarray, z: np.ndarray) -> bool:
-        """Predict and update by one compiled call where the filter has one (the VB-ACKF) and
-        ``z`` is finite; False: the caller runs the two steps."""
+        """Predict and update (a finite ``z``) by one compiled call where the filter has one (the
+        VB-ACKF); False: the caller runs the two steps."""
         fused = getattr(self._filter, "fused_step", None)
-        if fused is None or not (math.isfinite(z[0]) and math.isfinite(z[1]) and math.isfinite(z[2])):
-            return False
-        return bool(fused(dt, inputs, Q, z))
+        return fused is not None and bool(fused(dt, inputs, Q, z))
 
     def _after_update(self, inputs: VehicleInputs) -> bool:
         """After the update: the numerical-failure check, the counter, the wheel-speed update."""

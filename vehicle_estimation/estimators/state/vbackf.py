@@ -235,9 +235,18 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         """CKF time update, then the IW prediction ``nu_k|k-1``, ``V_k|k-1`` (Fig. 3)."""
         super().predict(dt, *args, Q=Q)
         rho = self.forgetting_factor(dt)
-        d1 = self.m + 1.0
-        self._dof = rho * (self._dof - d1) + d1
+        self._dof = self._predicted_dof(rho)
         self._scale = rho * self._scale
+
+    def _predicted_dof(self, rho: float) -> float:
+        """``nu_k|k-1 = rho (nu_k-1 - d - 1) + d + 1`` (Fig. 3; ``vb_step`` computes the same)."""
+        d1 = self.m + 1.0
+        return rho * (self._dof - d1) + d1
+
+    def _compiled_h_affine(self) -> Optional[Callable]:
+        """``h_affine`` where the compiled update serves (switched on, an affine ``h``, a fixed
+        ``N``), else None."""
+        return self.h_affine if self.compiled_iterations and self.vb.tolerance == 0.0 else None
 
     # -- variational measurement update ---------------------------------------------------
     def _residual_second_moment(self, z: np.ndarray, x: np.ndarray, P: np.ndarray, args) -> np.ndarray:
@@ -265,8 +274,9 @@ class VariationalBayesCKF(CubatureKalmanFilter):
             return np.full(self.m, np.nan)
         if R is not None:
             return super().update(z, *args, R=R)
-        if self.compiled_iterations and self.h_affine is not None and self.vb.tolerance == 0.0:
-            return self._update_compiled(z, *self.h_affine(*args))
+        h_affine = self._compiled_h_affine()
+        if h_affine is not None:
+            return self._update_compiled(z, *h_affine(*args))
 
         x_pred, P_pred = self._x.copy(), self._P.copy()
         dof_pred, scale_pred = self._dof, self._scale.copy()
@@ -330,21 +340,20 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         a non-affine ``h``, early stopping, ``dt <= 0``, or a ``P`` without a Cholesky factor):
         the caller then runs the two steps."""
         model = self.compiled_model
-        if model is None or not self.compiled_iterations or self.h_affine is None or self.vb.tolerance != 0.0 \
-                or not dt > 0.0:
+        h_affine = self._compiled_h_affine()
+        if model is None or h_affine is None or not dt > 0.0:
             return False
         n, m = self.n, self.m
         x_prior, P_prior, scale_pred = np.empty(n), np.empty((n, n)), np.empty((m, m))
         out = self._kernel_outputs()
         rho = self.forgetting_factor(dt)
-        arguments = (self._x, self._P, Q, *model.model_arguments(dt, inputs), rho, z, *self.h_affine(inputs),
+        arguments = (self._x, self._P, Q, *model.model_arguments(dt, inputs), rho, z, *h_affine(inputs),
                      float(self._dof), self._scale, self.vb.iterations, self.vb.r_estimate == "mean",
                      x_prior, P_prior, scale_pred, *out)
         outcome = vb_step(*arguments)
         if outcome == STEP_NO_FACTOR:
             return False
-        d1 = self.m + 1.0
-        dof_pred = rho * (self._dof - d1) + d1          # as predict(), the same arithmetic
+        dof_pred = self._predicted_dof(rho)
         self.x_prior, self.P_prior = x_prior.copy(), P_prior.copy()
         if outcome == STEP_PREDICTION_NOT_FINITE:
             self._x, self._P, self._dof, self._scale = x_prior, P_prior, dof_pred, scale_pred
