@@ -28,7 +28,8 @@ Sensors (all stamps start at 0 s):
   specific force = non-gravitational acceleration of the sprung mass (``dvx/dt - r vy``,
   ``dvy/dt + r vx``, ``g - dvz_down/dt``, from the model's own state derivatives) rotated
   into the rolled/pitched body, so ``+g`` on z at rest and ``g sin(roll)`` in ay in a turn, as
-  a body-fixed IMU feels it; gyro = (roll rate, pitch rate, yaw rate). White noise
+  a body-fixed IMU feels it; gyro = the body's angular rate from the Euler rates (ZYX: in a
+  turn the rolled body's y axis turns at ``r sin(roll) cos(pitch)``). White noise
   0.05 m/s² / 0.003 rad/s, a constant bias per axis of ±0.05 m/s² / ±0.002 rad/s (signs from
   the seed), optional band-limited vibration (10-60 Hz, ``vibration_std`` m/s² on each of
   ax, ay, az).
@@ -294,9 +295,15 @@ def truth_signals(tr: Trajectory) -> dict[str, np.ndarray]:
     fz1 = sp * a_lvl[:, 0] + cp * a_lvl[:, 2]
     fy = cr * a_lvl[:, 1] + sr * fz1
     fz = -sr * a_lvl[:, 1] + cr * fz1
+    # the body's angular rate from the Euler rates (ZYX): a rolled body turning at psi' also
+    # pitches about its own y axis at psi' sin(roll) cos(pitch), which a gyro reads
+    roll_rate, pitch_rate = ROLL_SIGN * x[:, 7], PITCH_SIGN * x[:, 9]
+    wx = roll_rate - r * sp
+    wy = pitch_rate * cr + r * sr * cp
+    wz = -pitch_rate * sr + r * cr * cp
     return {
         "t": tr.t, "vx": vx, "vy": vy, "yaw_rate": r, "yaw": x[:, 4], "roll": roll, "pitch": pitch,
-        "wx": ROLL_SIGN * x[:, 7], "wy": PITCH_SIGN * x[:, 9], "wz": r,
+        "wx": wx, "wy": wy, "wz": wz,
         "x": x[:, 0], "y": x[:, 1], "z": -x[:, 11],
         "sideslip": np.arctan2(vy, vx), "delta": x[:, 2], "wheels": x[:, list(WHEEL_STATE)],
         "accel": np.column_stack([fx1, fy, fz]),
