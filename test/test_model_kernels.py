@@ -26,7 +26,7 @@ from vehicle_estimation.estimators.fusion import ins_kernels  # noqa: E402
 from vehicle_estimation.estimators.fusion.config import FusionConfig  # noqa: E402
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF  # noqa: E402
 from vehicle_estimation.estimators.state.ckf import VehicleStateCKF, VehicleStateConfig  # noqa: E402
-from vehicle_estimation.estimators.state.vbackf import VehicleStateVBACKF  # noqa: E402
+from vehicle_estimation.estimators.state.vbackf import VBConfig, VehicleStateVBACKF  # noqa: E402
 from vehicle_estimation.estimators.state.vehicle_model import (  # noqa: E402
     VehicleInputs,
     free_rolling_wheel_speeds,
@@ -260,3 +260,23 @@ def test_slope_observer_scalar_steps_equal_the_matrix_form(gain_mode):
         IKC = np.eye(2) - np.outer(K, [1.0, 0.0])
         P = IKC @ P @ IKC.T + r * np.outer(K, K)
         assert _relative(obs._x, x) < 1e-12 and _relative(obs._P, 0.5 * (P + P.T)) < 1e-12
+
+
+def test_vb_diagonal_noise_compiled_gives_the_numpy_estimates():
+    """``vbackf.noise_structure: diagonal``: the kernels use only the diagonal of the learnt R,
+    as numpy does; R's off-diagonal terms are zero and its diagonal is the full R's."""
+    vb = VBConfig(noise_structure="diagonal")
+
+    def make(params, config):
+        return VehicleStateVBACKF(params, config, vb)
+
+    numpy_core, a = _state_drive(make, SEDAN, VehicleStateConfig(), False)
+    compiled_core, b = _state_drive(make, SEDAN, VehicleStateConfig(), True)
+    scale = np.maximum(np.max(np.abs(a), axis=0), 1e-9)
+    assert float(np.max(np.abs(a - b) / scale)) < 1e-9
+    R = compiled_core.filter.R_estimate
+    assert np.count_nonzero(R - np.diag(np.diag(R))) == 0
+    full = compiled_core.filter._scale / (compiled_core.filter._dof - 4.0)
+    np.testing.assert_allclose(np.diag(R), np.diag(full), rtol=1e-12)
+    _, c = _state_drive(VehicleStateVBACKF, SEDAN, VehicleStateConfig(), True)
+    assert float(np.max(np.abs(c - b) / scale)) > 1e-6      # it is another filter

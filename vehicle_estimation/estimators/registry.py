@@ -234,12 +234,17 @@ STATE_FILTERS: dict[str, StateFilter] = {
 
 
 def build_state_filter(name: str, vehicle: VehicleParams, settings: StateSettings | None = None,
-                       correction: Any = None) -> StateEstimator:
-    """The filter ``name`` with its default config and the node's ``settings`` (default:
-    :meth:`StateSettings.defaults`), as the state node builds it with its default parameters."""
+                       correction: Any = None, parameters: Mapping[str, Any] | None = None) -> StateEstimator:
+    """The filter ``name`` with the node's ``settings`` (default: :meth:`StateSettings.defaults`)
+    and its default config, overridden by the ``<prefix>.*`` entries of ``parameters`` (a state
+    node's ``ros__parameters``, as in a params file), as the state node builds it."""
     method = lookup(STATE_FILTERS, name, "vehicle-state filter")
     settings = settings if settings is not None else StateSettings.defaults()
     config = method.config_type()
     if config is not None:
+        head = method.config_prefix + "."
+        given = {key[len(head):]: value for key, value in (parameters or {}).items() if key.startswith(head)}
+        config = dataclasses.replace(config, **{key: tuple(value) if isinstance(value, list) else value
+                                                for key, value in given.items()})
         config, _ = with_state_settings(config, settings)
     return method.build(vehicle, config, settings, correction)

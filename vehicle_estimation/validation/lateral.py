@@ -11,7 +11,7 @@ contract and ground truth), and runs, without ROS:
   ``ros/state_node.py`` feeds them (mirrored here, that file is not imported: it needs rclpy):
   the node's shipped tuning (the ``vehicle_state`` section of ``params/estimation.yaml``:
   ``p0_diag``, ``q_diag``, ``r_diag``, ``initial_vx``, ``init_vx_from_wheel_speeds``,
-  ``wheel_slip_forces`` and the axle force noise; default ``vbackf.*``/``aoukf.*``, no GA-BPNN
+  ``wheel_slip_forces``, the axle force noise and the ``vbackf.*``/``aoukf.*`` it sets; no GA-BPNN
   weights for this car), IMU without the fusion's bias (the node runs alone here), but with the node's
   ``roll_compensation``: ``g sin(roll) cos(pitch)`` taken out of the measured ay, with the
   ground-truth attitude standing in for the fusion's (``--roll truth``, default; ``--roll none``
@@ -116,16 +116,22 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
 
 
 # --------------------------------------------------------------------------- cores
-def shipped_state_settings() -> StateSettings:
-    """The state node's tuning in the shipped ``params/estimation.yaml``."""
+def shipped_state_parameters() -> dict:
+    """The state node's ``ros__parameters`` in the shipped ``params/estimation.yaml``."""
     with open(params_file("estimation"), encoding="utf-8") as stream:
         shipped = yaml.safe_load(stream)
-    return StateSettings.from_parameters(merge_ros_parameters(shipped, node="vehicle_state"))
+    return merge_ros_parameters(shipped, node="vehicle_state")
+
+
+def shipped_state_settings() -> StateSettings:
+    """The state node's tuning in the shipped ``params/estimation.yaml``."""
+    return StateSettings.from_parameters(shipped_state_parameters())
 
 
 def make_core(name: str, vehicle: VehicleParams):
     """A core with the state node's shipped tuning (see the module docstring)."""
-    return build_state_filter(name, vehicle, settings=shipped_state_settings())
+    return build_state_filter(name, vehicle, settings=shipped_state_settings(),
+                              parameters=shipped_state_parameters())
 
 
 def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:

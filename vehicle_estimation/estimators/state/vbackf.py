@@ -87,6 +87,7 @@ from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 __all__ = ["VBConfig", "VariationalBayesCKF", "VehicleStateVBACKF"]
 
 R_ESTIMATES = ("mean", "vb")
+NOISE_STRUCTURES = ("full", "diagonal")
 
 
 class _NumericalFailure(Exception):
@@ -120,9 +121,18 @@ class VBConfig:
     r_estimate: str = setting(
         "mean", "The R used in the gain: 'mean' (Eq. 11, V/(nu-d-1), paper) or 'vb' "
         "((E[R^-1])^-1 = V/nu, exact mean-field)", choices=R_ESTIMATES)
+    noise_structure: str = setting(
+        "full", "Which R is learnt: 'full' (paper, inverse-Wishart: every covariance) or 'diagonal' "
+        "(each channel's variance alone: the IW's marginals, the inverse-Gamma of Sarkka & "
+        "Nummenmaa 2009). An IMU's axes have independent noise; a full R also learns the "
+        "correlation of the model's errors in ay and r as sensor noise", choices=NOISE_STRUCTURES)
     tolerance: float = setting(
         0.0, "Stop the iterations early when the relative change of V is below this (0 = always "
         "`iterations`, as the paper) [-]", low=0.0)
+
+    @property
+    def diagonal(self) -> bool:
+        return self.noise_structure == "diagonal"
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
@@ -219,10 +229,10 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         return self._point_estimate(self._dof, self._scale, self.vb.r_estimate)
 
     def _point_estimate(self, dof: float, scale: np.ndarray, kind: str) -> np.ndarray:
-        """``R`` of ``IW(R; dof, scale)``: its mean (``kind`` "mean") or ``(E[R^-1])^-1`` ("vb")."""
-        if kind == "mean":
-            return scale / (dof - self.m - 1.0)
-        return scale / dof
+        """``R`` of ``IW(R; dof, scale)``: its mean (``kind`` "mean") or ``(E[R^-1])^-1`` ("vb");
+        only its diagonal with ``VBConfig.noise_structure`` "diagonal"."""
+        R = scale / (dof - self.m - 1.0) if kind == "mean" else scale / dof
+        return np.diag(np.diag(R)) if self.vb.diagonal else R
 
     def forgetting_factor(self, dt: float) -> float:
         """``rho`` for a prediction over ``dt``: ``rho ** (dt / nominal_dt)`` or ``rho``."""
@@ -330,7 +340,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         out = self._kernel_outputs()
         x_pred, P_pred, dof_pred, scale_pred = self._x, self._P, self._dof, self._scale
         outcome = vb_update(z, x_pred, P_pred, float(dof_pred), scale_pred, H, c, self.vb.iterations,
-                            self.vb.r_estimate == "mean", *out)
+                            self.vb.r_estimate == "mean", self.vb.diagonal, *out)
         self._take_outcome(outcome, out, x_pred, P_pred, dof_pred, scale_pred)
         return out[0]
 
@@ -349,7 +359,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         rho = self.forgetting_factor(dt)
         arguments = (self._x, self._P, Q, *model.model_arguments(dt, inputs), rho, z, *h_affine(inputs),
                      float(self._dof), self._scale, self.vb.iterations, self.vb.r_estimate == "mean",
-                     x_prior, P_prior, scale_pred, *out)
+                     self.vb.diagonal, x_prior, P_prior, scale_pred, *out)
         outcome = vb_step(*arguments)
         if outcome == STEP_NO_FACTOR:
             return False
