@@ -1,5 +1,6 @@
 """Tests of the ambient-wind estimator (vehicle_estimation.estimators.mass.wind) and its use in the RLS mass core."""
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -128,3 +129,32 @@ def test_wind_estimator_recovers_a_planted_wind_in_a_simulated_drive():
     m_on = drive_metrics(on, w.true_mass, w.distance, 5000.0)
     assert m_on["within_5pct"] > 0.95
     assert np.all(np.isfinite(off)) and np.all(np.isfinite(on))
+
+
+def test_rolling_resistance_offset_recovered_beside_the_mass():
+    """A C_r 0.004 above the vehicle's (a tyre 0.5 bar low) is a force m g dC_r that the mass
+    alone would absorb; with the fourth state both come out, within 2 sigma."""
+    rng = np.random.default_rng(3)
+    cfg = WindEstimatorConfig(estimate_wind=False, rolling_resistance_std=0.004)
+    est = WindEstimator(AUDI.air_density, AUDI.drag_area, 1000.0, cfg)
+    t, v, _, phi, _ = _force_samples(rng, (0.0, 0.0))
+    g = AUDI.gravity
+    z = 1700.0 * (phi + g * 0.004) + K_DRAG * v * v + rng.normal(0.0, 100.0, t.size)
+    for sample in zip(t, v, np.full(t.size, math.nan), phi, z, np.full(t.size, g)):
+        assert est.update(*sample)          # no heading needed without the wind
+    assert abs(est.rolling_resistance_offset - 0.004) < 2.0 * est.rolling_resistance_offset_std
+    assert est.rolling_resistance_offset_std < 0.001
+    assert est.nuisance_mass == pytest.approx(1700.0, rel=0.03)
+    assert est.wind_enu == (0.0, 0.0)
+    # the RLS core books the same force as mass unless it estimates dC_r
+    base = MassRLSConfig(drive_force_kind="tractive", min_accel=-10.0)
+    cores = {on: LongitudinalMassEstimator(AUDI, dataclasses.replace(base, rolling_resistance_estimation=on))
+             for on in (False, True)}
+    a = phi - g * AUDI.rolling_resistance
+    for k in range(t.size):
+        for core in cores.values():
+            core.step(t[k], v[k], a[k], 0.0, drive_force=z[k] + 0.0)
+    assert cores[False].wind is None and cores[True].wind is not None
+    assert cores[False].mass > 1.03 * 1700.0
+    assert cores[True].mass == pytest.approx(1700.0, rel=0.02)
+    assert "rolling resistance" in cores[True].status()

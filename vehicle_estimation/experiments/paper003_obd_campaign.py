@@ -253,9 +253,10 @@ def drive_windows(result: Any, base: VehicleParams, seed: int) -> DriveWindows:
 
 
 def run_core(w: DriveWindows, vehicle: VehicleParams, regression: Sequence[float], *, forgetting: float = 0.9995,
-             wind: bool = False) -> tuple[np.ndarray, LongitudinalMassEstimator]:
+             wind: bool = False, rolling_resistance: bool = False) -> tuple[np.ndarray, LongitudinalMassEstimator]:
     """Published mass after every window (the core's output as the node would publish it)."""
-    cfg = MassRLSConfig(forgetting_factor=forgetting, torque_regression=list(regression), wind_compensation=wind)
+    cfg = MassRLSConfig(forgetting_factor=forgetting, torque_regression=list(regression), wind_compensation=wind,
+                        rolling_resistance_estimation=rolling_resistance)
     core = LongitudinalMassEstimator(vehicle, cfg)
     out = np.empty(w.t.size)
     nan = math.nan
@@ -345,19 +346,23 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
     for d, w in zip(drives, windows):
         m_off, _ = run_core(w, fitted, regression)
         m_on, core_on = run_core(w, fitted, regression, wind=True)
-        assert core_on.wind is not None
+        m_cr, core_cr = run_core(w, fitted, regression, wind=True, rolling_resistance=True)
+        assert core_on.wind is not None and core_cr.wind is not None
         m_off_stats = drive_metrics(m_off, w.true_mass, w.distance, converge_m)
         m_on_stats = drive_metrics(m_on, w.true_mass, w.distance, converge_m)
+        m_cr_stats = drive_metrics(m_cr, w.true_mass, w.distance, converge_m)
         row: dict[str, Any] = {"drive": d.name, "kind": d.kind, "true_mass": w.true_mass, "km": float(w.distance[-1] / 1000.0),
-               "wind_off": m_off_stats, "wind_on": m_on_stats,
+               "wind_off": m_off_stats, "wind_on": m_on_stats, "wind_and_cr": m_cr_stats,
                "wind_true_enu": list(d.wind_enu()[:2]), "wind_est_enu": list(core_on.wind.wind_enu),
-               "wind_est_std": list(core_on.wind.wind_std)}
+               "wind_est_std": list(core_on.wind.wind_std),
+               "cr_true": d.rolling_factor * base.rolling_resistance, "cr_fitted": fitted.rolling_resistance,
+               "cr_est": core_cr.rolling_resistance, "cr_est_std": core_cr.wind.rolling_resistance_offset_std}
         rows.append(row)
         step = max(1, int(round(20.0 / PERIOD)))
         traces[d.name] = {"km": (w.distance[::step] / 1000.0).tolist(), "off": m_off[::step].tolist(),
                           "on": m_on[::step].tolist(), "true": w.true_mass, "kind": d.kind}
         log(f"drive {d.name:>3} {d.kind:<26} within +-5 %: {m_off_stats['within_5pct']:6.1%} (paper), "
-            f"{m_on_stats['within_5pct']:6.1%} (wind compensation)")
+            f"{m_on_stats['within_5pct']:6.1%} (wind compensation), {m_cr_stats['within_5pct']:6.1%} (and C_r)")
     # ---- 3. Fig. 13: drives 4-8 back to back
     seq_names = ["04", "05", "06", "07", "08"] if not quick else ["01", "07"]
     by_name = dict(zip((d.name for d in drives), windows))
@@ -432,14 +437,17 @@ def format_tables(result: dict) -> str:
               f"| R^2 | {f['r2']:.4f} | | 0.972 |", "",
               f"grade for the fit: {c['grade_source']}; {f['n_samples']} windows used", ""]
     lines += [f"## Drives (lambda = 0.9995; after the first {result['converge_km']:g} km)", "",
-              "| drive | type | km | within +-5 % (paper) | mean err | max err | within +-5 % (wind comp.) | mean err | max err | wind est. (E, N) m/s |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+              "| drive | type | km | within +-5 % (paper) | mean err | max err | within +-5 % (wind comp.) | mean err | max err "
+              "| within +-5 % (wind and C_r) | mean err | max err | C_r est. (true) | wind est. (E, N) m/s |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in result["drives"]:
-        a, b = r["wind_off"], r["wind_on"]
+        a, b, c3 = r["wind_off"], r["wind_on"], r["wind_and_cr"]
         we = r["wind_est_enu"]
         lines.append(f"| {r['drive']} | {r['kind']} | {r['km']:.0f} | {_pct(a['within_5pct'])} | {a['mean_error_pct']:+.1f} % | "
                      f"{a['max_abs_error_pct']:.1f} % | {_pct(b['within_5pct'])} | {b['mean_error_pct']:+.1f} % | "
-                     f"{b['max_abs_error_pct']:.1f} % | ({we[0]:+.1f}, {we[1]:+.1f}) true ({r['wind_true_enu'][0]:+.1f}, {r['wind_true_enu'][1]:+.1f}) |")
+                     f"{b['max_abs_error_pct']:.1f} % | {_pct(c3['within_5pct'])} | {c3['mean_error_pct']:+.1f} % | "
+                     f"{c3['max_abs_error_pct']:.1f} % | {r['cr_est']:.4f} +- {r['cr_est_std']:.4f} (fit {r['cr_fitted']:.4f}, sim {r['cr_true']:.4f}) | "
+                     f"({we[0]:+.1f}, {we[1]:+.1f}) true ({r['wind_true_enu'][0]:+.1f}, {r['wind_true_enu'][1]:+.1f}) |")
     seq = result["lambda_sequence"]
     lines += ["", f"## Fig. 13: drives {'-'.join(seq['drives'])} back to back", "",
               "| lambda | wind comp. | load change at km | step | lag to 63 % [min] | [km] | lag to 90 % [min] | [km] | within +-5 % | std of error |",

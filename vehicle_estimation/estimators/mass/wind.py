@@ -23,6 +23,14 @@ the published mass stays the paper's scalar RLS, which then uses this wind in it
               S = H P H^T + sigma^2, K = P H^T / S, x <- x + K (z - h(x)),
               P <- (I - K H) P (I - K H)^T + K sigma^2 K^T          (Joseph form)
 
+Rolling resistance (optional, ``rolling_resistance_std > 0``). A tyre-pressure or temperature
+change the calibration never saw moves C_r, and a C_r error is a force that grows with the mass
+only through g cos(theta), m g cos(theta) dC_r, which the scalar RLS books as mass (paper 003
+drive 12: C_r x 1.4, 87 % of windows within +-5 %). A fourth state dC_r (the deviation from the
+vehicle's C_r, a random walk) with ``H_4 = m g cos(theta)`` separates it from the mass where phi
+varies (accelerations, grades): phi of Eq. (5) then uses C_r + dC_r. Without ``estimate_wind``
+the wind states stay at zero (no prior variance) and the heading is not needed.
+
 Inputs per sample (all already computed by the mass core for Eq. (6)): time, speed v [m/s],
 heading psi [rad] (the fusion node's odometry yaw in ENU), phi [m/s^2] and z [N]. It needs
 nothing else: the drag area C_a and air density come from the (calibrated) vehicle. Vertical
@@ -66,6 +74,11 @@ class WindEstimatorConfig:
     gate: float = setting(5.0, "Innovation test in standard deviations", low=0.0, low_open=True)
     max_abs_wind: float = setting(25.0, "The published wind is clipped to this magnitude [m/s]",
                                   low=0.0, low_open=True)
+    estimate_wind: bool = setting(True, "Estimate the wind (else it stays 0 and no heading is needed)")
+    rolling_resistance_std: float = setting(0.0, "Prior sigma of the rolling-resistance deviation dC_r "
+                                            "(0 = not estimated) [-]", low=0.0, high=0.05)
+    rolling_resistance_walk: float = setting(2e-5, "Random walk of dC_r [1 per sqrt(s)] (0.0012 per hour)",
+                                             low=0.0)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
@@ -78,7 +91,9 @@ class WindEstimatorConfig:
 
 
 class WindEstimator:
-    """EKF on [m, w_E, w_N] from the longitudinal force balance (*) of the module docstring."""
+    """EKF on [m, w_E, w_N, dC_r] from the longitudinal force balance (*) of the module docstring;
+    a state whose prior sigma is 0 (the wind without ``estimate_wind``, dC_r without
+    ``rolling_resistance_std``) stays at 0."""
 
     def __init__(self, air_density: float, drag_area: float, initial_mass: float,
                  config: WindEstimatorConfig | None = None) -> None:
@@ -93,8 +108,9 @@ class WindEstimator:
 
     def reset(self) -> None:
         cfg = self.config
-        self.x = np.array([self.initial_mass, 0.0, 0.0])
-        self.P = np.diag([cfg.initial_mass_std ** 2, cfg.initial_wind_std ** 2, cfg.initial_wind_std ** 2])
+        wind_var = cfg.initial_wind_std ** 2 if cfg.estimate_wind else 0.0
+        self.x = np.array([self.initial_mass, 0.0, 0.0, 0.0])
+        self.P = np.diag([cfg.initial_mass_std ** 2, wind_var, wind_var, cfg.rolling_resistance_std ** 2])
         self._p_max = np.diag(self.P).copy()
         self._last_t = math.nan
         self.samples_used = 0
@@ -128,6 +144,15 @@ class WindEstimator:
     def nuisance_mass(self) -> float:
         return float(self.x[0])
 
+    @property
+    def rolling_resistance_offset(self) -> float:
+        """Estimated dC_r, the deviation from the vehicle's C_r (0 when not estimated) [-]."""
+        return float(self.x[3])
+
+    @property
+    def rolling_resistance_offset_std(self) -> float:
+        return math.sqrt(max(self.P[3, 3], 0.0))
+
     def along(self, heading: float) -> float:
         """Wind component along the heading w_a [m/s] (+: tailwind); 0 for a non-finite heading."""
         if not all_finite(heading):
@@ -141,10 +166,17 @@ class WindEstimator:
         return self.k_drag * va * abs(va)
 
     # ------------------------------------------------------------------ update
-    def update(self, t: float, v: float, heading: float, phi: float, net_force: float) -> bool:
-        """One sample of (*): ``net_force`` = F_p - (I_w/r^2 + I_e G^2) a [N]. True when used."""
+    def update(self, t: float, v: float, heading: float, phi: float, net_force: float,
+               gravity_normal: float = math.nan) -> bool:
+        """One sample of (*): ``net_force`` = F_p - (I_w/r^2 + I_e G^2) a [N], ``phi`` of Eq. (5)
+        with the vehicle's C_r, ``gravity_normal`` = g cos(theta) [m/s^2] (needed when dC_r is
+        estimated). True when used."""
         cfg = self.config
-        if not all_finite(t, v, heading, phi, net_force):
+        if not cfg.estimate_wind:
+            heading = 0.0      # the wind states stay at zero: any heading gives the same
+        if cfg.rolling_resistance_std == 0.0:
+            gravity_normal = 0.0
+        if not all_finite(t, v, heading, phi, net_force, gravity_normal):
             self.rejected["nan"] += 1
             return False
         t, v, heading, phi, z = float(t), float(v), float(heading), float(phi), float(net_force)
@@ -155,16 +187,20 @@ class WindEstimator:
             self.rejected["speed"] += 1
             return False
         dt = 0.0 if math.isnan(self._last_t) else t - self._last_t
-        q = np.array([cfg.mass_random_walk ** 2, cfg.random_walk ** 2, cfg.random_walk ** 2]) * dt
+        walk = cfg.random_walk ** 2 if cfg.estimate_wind else 0.0
+        cr_walk = cfg.rolling_resistance_walk ** 2 if cfg.rolling_resistance_std > 0.0 else 0.0
+        q = np.array([cfg.mass_random_walk ** 2, walk, walk, cr_walk]) * dt
         P = self.P + np.diag(q)
         # A long stop must not inflate the covariance beyond the prior.
         d = np.minimum(np.diag(P), self._p_max)
-        P[np.diag_indices(3)] = d
+        P[np.diag_indices(4)] = d
         c, s = math.cos(heading), math.sin(heading)
-        m, we, wn = self.x
+        m, we, wn, dcr = self.x
         va = v - (we * c + wn * s)
-        h = m * phi + self.k_drag * va * abs(va)
-        H = np.array([phi, -2.0 * self.k_drag * abs(va) * c, -2.0 * self.k_drag * abs(va) * s])
+        phi_c = phi + gravity_normal * dcr
+        h = m * phi_c + self.k_drag * va * abs(va)
+        H = np.array([phi_c, -2.0 * self.k_drag * abs(va) * c, -2.0 * self.k_drag * abs(va) * s,
+                      m * gravity_normal])
         R = cfg.force_std ** 2
         PHt = P @ H
         S = float(H @ PHt) + R
@@ -176,7 +212,7 @@ class WindEstimator:
             return False
         K = PHt / S
         x_new = self.x + K * innov
-        IKH = np.eye(3) - np.outer(K, H)
+        IKH = np.eye(4) - np.outer(K, H)
         P_new = IKH @ P @ IKH.T + np.outer(K, K) * R
         if not (np.all(np.isfinite(x_new)) and np.all(np.isfinite(P_new))):
             self.P = P
