@@ -412,6 +412,36 @@ def test_mass_node_rls_with_wind_compensation_takes_the_heading_from_the_odometr
         h.close()
 
 
+def test_mass_node_rls_estimates_the_rolling_resistance_without_a_heading():
+    """Tyres with C_r 0.006 above the vehicle file's: ``mass.rolling_resistance_estimation``
+    separates that force from the mass (no odometry, so no wind: the heading is not needed);
+    the node reports the C_r in /diagnostics. The forces here are exact, so the EKF may trust
+    them more than a real torque map's (150 N per window, the wind's, not 600 N)."""
+    mass_true, extra_cr = 1800.0, 0.006
+    node = MassNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("method", value="rls"), Parameter("mass.rolling_resistance_estimation", value=True),
+        Parameter("mass.rolling_resistance_force_std", value=150.0)])
+    h = Harness(node)
+    try:
+        diagnostics = h.probe.watch(DiagnosticArray, "/diagnostics")
+        out = _connect_mass_inputs(h)
+        stream = _mass_drive_stream(node.vehicle, mass_true, True, v0=12.0)
+        for topic, msg in stream:
+            if topic == topics.POWERTRAIN:
+                msg.effort[1] += mass_true * node.vehicle.gravity * extra_cr
+        h.publish_stream(stream)
+        assert h.wait_for(lambda: len(out) > 50)
+        assert node.core.wind is not None and node.core.wind.samples_used > 100
+        cr = node.core.rolling_resistance - node.vehicle.rolling_resistance
+        assert node.core.wind.rolling_resistance_offset_std < 0.002
+        assert cr == pytest.approx(extra_cr, abs=2.0 * node.core.wind.rolling_resistance_offset_std)
+        assert out[-1].vector.x == pytest.approx(mass_true, rel=0.03)
+        assert h.wait_for(lambda: any(kv.key == "rolling resistance" for d in diagnostics
+                                      for st in d.status for kv in st.values), timeout=5.0)
+    finally:
+        h.close()
+
+
 def test_mass_node_ffrls_uses_braking_samples():
     """FFRLS (paper 004 Eqs. 28-31): driving and braking pulses, brake torque on the wheels."""
     mass_true = 1650.0
