@@ -465,6 +465,8 @@ def test_mass_node_ffrls_uses_braking_samples():
 @pytest.mark.parametrize("module, override, name", [
     ("mass_node", "ffrls.forgetting_factor:=1.5", "forgetting_factor"),
     ("mass_node", "method:=bogus", "method"),
+    ("mass_node", "method:=rls;mass.rolling_resistance_std:=0.0", "rolling_resistance_std"),
+    ("state_node", "filter:=vbackf;vbackf.noise_structure:=banded", "noise_structure"),
     ("mass_node", "method:=ta_aekf;ta_aekf.fixed_tau:=2.0", "fixed_tau"),
     ("mass_node", "method:=ta_aekf;ta_aekf.model_path:=/nonexistent/model", "ta_aekf.model_path"),
     ("state_node", "filter:=aoukf;aoukf.outlier_c:=-1.0", "outlier_c"),

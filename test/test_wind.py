@@ -83,6 +83,16 @@ def test_config_validation_names_the_field():
     with pytest.raises(ValueError, match="wind_compensation"):
         MassRLSConfig(wind_compensation=1).validate()            # type: ignore[arg-type]
     assert MassRLSConfig.from_mapping({"wind_compensation": True, "wind_force_std": 200}).wind_force_std == 200.0
+    with pytest.raises(ValueError, match="rolling_resistance_std"):
+        MassRLSConfig(rolling_resistance_std=0.0).validate()
+    with pytest.raises(ValueError, match="rolling_resistance_force_std"):
+        MassRLSConfig(rolling_resistance_force_std=-5.0).validate()
+    with pytest.raises(ValueError, match="rolling_resistance_std"):
+        WindEstimatorConfig(rolling_resistance_std=0.5).validate()
+    # the EKF's force sigma is the C_r one only while C_r is estimated
+    assert MassRLSConfig(wind_compensation=True).wind_config().force_std == 150.0
+    assert MassRLSConfig(rolling_resistance_estimation=True).wind_config().force_std == 600.0
+    assert not MassRLSConfig(rolling_resistance_estimation=True).wind_config().estimate_wind
 
 
 def test_mass_core_unchanged_when_wind_compensation_is_off():
