@@ -124,6 +124,28 @@ def test_estimator_recovers_mass_with_predicted_gear():
     assert est.converged
 
 
+def test_sigma_rule_flags_convergence_early_and_honestly():
+    """``convergence_max_rel_std``: converged once sigma <= 4 % of the mass (after 20 updates),
+    long before the 200-update stability window; at that moment the error is within 3 sigma,
+    and the flag stays true where the window alone would say it too."""
+    t, v, a, slope, torque, omega, _gear, _ = _synthetic_drive(AUDI, 1580.0)
+    window_only = LongitudinalMassEstimator(AUDI)
+    with_sigma = LongitudinalMassEstimator(AUDI, MassRLSConfig(convergence_max_rel_std=0.04))
+    first = {}
+    for k in range(len(t)):
+        for name, est in (("window", window_only), ("sigma", with_sigma)):
+            est.step(t[k], v[k], a[k], slope[k], engine_torque=torque[k], engine_speed=omega[k])
+            if est.converged and name not in first:
+                first[name] = (est.samples_used, est.mass, math.sqrt(est.variance))
+            if name == "sigma" and window_only.converged:
+                assert est.converged
+    used, mass, sigma = first["sigma"]
+    assert 20 <= used < first["window"][0] / 2
+    assert sigma <= 0.04 * mass and abs(mass - 1580.0) <= 3.0 * sigma
+    with pytest.raises(ValueError, match="convergence_max_rel_std"):
+        MassRLSConfig(convergence_max_rel_std=-0.1).validate()
+
+
 def test_estimator_drive_force_and_regression_paths():
     t, v, a, slope, torque, omega, gear, force = _synthetic_drive(AUDI, 1700.0, n=12000)
     est = LongitudinalMassEstimator(AUDI, MassRLSConfig(drive_force_kind="propulsion"))

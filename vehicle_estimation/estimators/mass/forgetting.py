@@ -37,6 +37,12 @@ class ForgettingConfig:
                                         "below this", low=0.0, low_open=True)
     convergence_max_rel_change: float = setting(0.01, "Converged only if |last - first| / mean over the "
                                                 "window is below this", low=0.0, low_open=True)
+    # Not in the papers: the stability window above needs 200 accepted updates (minutes of
+    # driving); a controller can use an estimate much earlier if the variance says how good it is.
+    convergence_max_rel_std: float = setting(
+        0.0, "Also converged once the published sigma is at most this share of the mass, after "
+        "convergence_min_updates updates (0 = off: the stability window alone)", low=0.0, high=1.0)
+    convergence_min_updates: int = setting(20, "Updates before the sigma rule may flag convergence", low=1)
     initial_residual_std: float = setting(500.0, "Prior sigma of the force residual for the variance [N]",
                                           low=0.0, low_open=True)
     min_mass: float = setting(300.0, "The published mass is clipped to [min_mass, max_mass] [kg]",
@@ -218,7 +224,15 @@ class ForgettingMassEstimator:
     @property
     def converged(self) -> bool:
         """True when the last ``convergence_window`` updates have a coefficient of variation
-        below ``convergence_max_cv`` and moved by less than ``convergence_max_rel_change``."""
+        below ``convergence_max_cv`` and moved by less than ``convergence_max_rel_change``, or,
+        with ``convergence_max_rel_std`` > 0, once ``convergence_min_updates`` updates are in and
+        the published sigma is at most that share of the mass (the variance is honest: it
+        carries the residuals and the regressor's lasting error)."""
+        cfg = self.config
+        if cfg.convergence_max_rel_std > 0.0 and self.samples_used >= cfg.convergence_min_updates:
+            mass, variance = self.mass, self.variance
+            if mass > 0.0 and math.isfinite(variance) and variance <= (cfg.convergence_max_rel_std * mass) ** 2:
+                return True
         window = self._window
         assert window.maxlen is not None   # built with maxlen=convergence_window
         if len(window) < window.maxlen:
