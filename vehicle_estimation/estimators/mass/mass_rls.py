@@ -100,8 +100,8 @@ class MassRLSConfig(ForgettingConfig):
                                            low=0.0)
     wind_initial_std: float = setting(6.0, "WindEstimatorConfig.initial_wind_std [m/s]", low=0.0, low_open=True)
     wind_min_speed: float = setting(8.0, "WindEstimatorConfig.min_speed [m/s]", low=0.0)
-    # --- rolling resistance (not in the paper; issue: a tyre pressure the calibration never saw
-    # is read as mass): the same EKF also estimates dC_r, and Eq. (5) uses C_r + dC_r.
+    # --- rolling resistance (not in the paper): a tyre pressure the calibration never saw is a
+    # force the RLS would read as mass; the same EKF also estimates dC_r, and Eq. (5) uses C_r + dC_r.
     rolling_resistance_estimation: bool = setting(
         False, "Estimate the rolling resistance's deviation dC_r online with the mass (the road-load EKF "
         "of estimators/mass/wind.py) and use C_r + dC_r in Eq. (5)")
