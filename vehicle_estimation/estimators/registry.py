@@ -12,7 +12,7 @@ import dataclasses
 import importlib
 from typing import Any, Callable, Mapping
 
-from vehicle_estimation.contract.vehicle import VehicleParams
+from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
 from vehicle_estimation.estimators.interfaces import MassEstimator, StateEstimator
 
 
@@ -244,7 +244,6 @@ def build_state_filter(name: str, vehicle: VehicleParams, settings: StateSetting
     if config is not None:
         head = method.config_prefix + "."
         given = {key[len(head):]: value for key, value in (parameters or {}).items() if key.startswith(head)}
-        config = dataclasses.replace(config, **{key: tuple(value) if isinstance(value, list) else value
-                                                for key, value in given.items()})
+        config = dataclass_from_mapping(type(config), given, f"unknown parameter '{head}{{key}}'")
         config, _ = with_state_settings(config, settings)
     return method.build(vehicle, config, settings, correction)

@@ -371,11 +371,12 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             return self._reject("propulsion")
 
         g = p.gravity
+        g_normal = g * math.cos(slope)
         phi = ax + g * p.rolling_resistance * math.cos(slope) + g * math.sin(slope)  # Eq. (5)
         if self.wind is not None:
-            self.wind.update(t, vx, heading, phi, force - inertia * ax, g * math.cos(slope))
+            self.wind.update(t, vx, heading, phi, force - inertia * ax, g_normal)
             drag = self.wind.drag(vx, heading)                                  # F_a with the wind
-            phi += g * math.cos(slope) * self.wind.rolling_resistance_offset    # C_r + dC_r
+            phi += g_normal * self.wind.rolling_resistance_offset               # C_r + dC_r
         else:
             drag = 0.5 * p.air_density * p.drag_area * vx * vx                 # F_a, Eq. (1)
         if abs(phi) < cfg.min_phi:

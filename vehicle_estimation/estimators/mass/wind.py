@@ -112,6 +112,9 @@ class WindEstimator:
         self.x = np.array([self.initial_mass, 0.0, 0.0, 0.0])
         self.P = np.diag([cfg.initial_mass_std ** 2, wind_var, wind_var, cfg.rolling_resistance_std ** 2])
         self._p_max = np.diag(self.P).copy()
+        # Random-walk densities; a state without prior variance (not estimated) gets none.
+        walk = np.array([cfg.mass_random_walk, cfg.random_walk, cfg.random_walk, cfg.rolling_resistance_walk])
+        self._q_density = np.where(self._p_max > 0.0, walk ** 2, 0.0)
         self._last_t = math.nan
         self.samples_used = 0
         self.rejected: dict[str, int] = {reason: 0 for reason in REJECT_REASONS}
@@ -187,10 +190,7 @@ class WindEstimator:
             self.rejected["speed"] += 1
             return False
         dt = 0.0 if math.isnan(self._last_t) else t - self._last_t
-        walk = cfg.random_walk ** 2 if cfg.estimate_wind else 0.0
-        cr_walk = cfg.rolling_resistance_walk ** 2 if cfg.rolling_resistance_std > 0.0 else 0.0
-        q = np.array([cfg.mass_random_walk ** 2, walk, walk, cr_walk]) * dt
-        P = self.P + np.diag(q)
+        P = self.P + np.diag(self._q_density * dt)
         # A long stop must not inflate the covariance beyond the prior.
         d = np.minimum(np.diag(P), self._p_max)
         P[np.diag_indices(4)] = d
