@@ -352,6 +352,36 @@ def test_rejects_nonfinite_and_out_of_order():
     assert ekf.process_imu(t + 0.005, f, w)
 
 
+def test_imu_samples_beyond_the_sensor_range_are_rejected():
+    ekf, t = _aligned_filter()
+    P0, p0 = ekf.covariance, ekf.position_enu
+    f, w = _static_imu()
+    assert not ekf.process_imu(t + 0.005, [0.0, 1000.0, G], w)          # 100 g: a scaling fault
+    assert not ekf.process_imu(t + 0.005, f, [0.0, 0.0, -50.0])        # 2900 deg/s
+    assert ekf.rejected["imu_range"] == 2
+    np.testing.assert_array_equal(ekf.covariance, P0)
+    np.testing.assert_array_equal(ekf.position_enu, p0)
+    assert ekf.process_imu(t + 0.005, [0.0, 150.0, G], w)              # within 16 g: a real crash
+    assert ekf.rejected["imu_range"] == 2
+
+
+def test_a_gnss_jump_restarts_the_heading_initialisation():
+    """A fix from elsewhere while the heading is being fixed: the GNSS track is no longer the
+    INS track rotated, so the initialisation starts again instead of taking its rotation."""
+    sim = simulate(seed=1)
+    jumped = dict(sim)
+    jumped["gnss"] = sim["gnss"].copy()
+    i_jump = int(np.searchsorted(sim["gnss_t"], 12.0))
+    jumped["gnss"][i_jump] += np.array([900.0, -700.0, 0.0])
+    ekf, out = run_filter(jumped)
+    assert ekf.events["heading_restarted"] >= 1
+    assert ekf.events["heading_initialised"] == 1
+    m = out["running"]
+    yaw_err = np.angle(np.exp(1j * (out["yaw"][m] - sim["yaw"][m])))
+    assert math.degrees(_rms(yaw_err)) < 2.0
+    assert np.linalg.norm(out["pos"][-1, :2] - sim["pos"][-1, :2]) < 10.0
+
+
 def test_gnss_gating_rejects_outlier():
     sim = simulate(seed=3)
     n = int(40.0 * IMU_HZ)                   # run the first 40 s

@@ -127,6 +127,14 @@ class FusionConfig:
     max_measurement_delay_s: float = setting(0.5, "Measurements older than the filter by more are rejected [s]",
                                              low=0.0, low_open=True)
     max_imu_dt_s: float = setting(0.5, "Larger IMU gaps are propagated but counted [s]", low=0.0, low_open=True)
+    imu_max_specific_force: float = setting(160.0, "IMU samples with a specific-force axis beyond this are "
+                                            "rejected: an automotive IMU's range is 16 g [m/s^2]",
+                                            low=0.0, low_open=True)
+    imu_max_angular_rate: float = setting(35.0, "IMU samples with a rate axis beyond this are rejected: "
+                                          "2000 deg/s, a MEMS gyro's widest range [rad/s]", low=0.0, low_open=True)
+    heading_max_scale_error: float = setting(0.5, "The GNSS track and the INS track may differ in length by this "
+                                             "share before the heading initialisation restarts", low=0.0,
+                                             low_open=True)
     # --- IMU mounting (imu_link in base_link; not in the paper, see the esekf module docstring) ---
     mounting_rpy: tuple = setting((0.0, 0.0, 0.0), "Nominal roll, pitch, yaw of imu_link in base_link [rad]",
                                   low=-math.pi, high=math.pi, each=True)

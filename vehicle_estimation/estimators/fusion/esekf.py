@@ -177,12 +177,13 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._motion: list = []          # (t, f, w, CAN speed) while moving, for in-motion alignment
         self._heading_fixes: list = []   # (gnss_enu, ins_enu, variance_h)
         self._consec = {"gnss": 0, "speed": 0}
-        self.rejected = {"imu_nonfinite": 0, "imu_out_of_order": 0,
+        self.rejected = {"imu_nonfinite": 0, "imu_out_of_order": 0, "imu_range": 0,
                          "gnss_nonfinite": 0, "gnss_out_of_order": 0, "gnss_stale": 0, "gnss_gate": 0,
                          "speed_nonfinite": 0, "speed_out_of_order": 0, "speed_stale": 0, "speed_gate": 0,
                          "update_numerical": 0}
         self.events = {"imu_gap": 0, "align_restart": 0, "aligned_in_motion": 0, "gnss_covariance_reopened": 0,
-                       "speed_covariance_reopened": 0, "heading_initialised": 0}
+                       "speed_covariance_reopened": 0, "heading_initialised": 0,
+                       "heading_restarted": 0}
         self.heading_sigma_at_init: float | None = None
 
     @property
@@ -280,6 +281,13 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         if not self._admit("imu", t, f is not None and w is not None, self._t):
             return False
         assert f is not None and w is not None
+        c = self.config
+        if (max(abs(f[0]), abs(f[1]), abs(f[2])) > c.imu_max_specific_force
+                or max(abs(w[0]), abs(w[1]), abs(w[2])) > c.imu_max_angular_rate):
+            # Beyond the sensor's range the value is a bus or scaling fault, not a motion; one
+            # such sample integrated over its dt would corrupt the state for good.
+            self.rejected["imu_range"] += 1
+            return False
 
         if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
             self._align_step(t, f, w)

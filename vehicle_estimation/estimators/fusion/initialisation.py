@@ -189,6 +189,13 @@ class FusionInitialisation:
         den = float(np.sum(ic[:, 0] * gc[:, 0] + ic[:, 1] * gc[:, 1]))
         dpsi = math.atan2(num, den)
         spread = float(np.sum(ic * ic))
+        track_scale = math.sqrt(float(np.sum(gc * gc)) / max(spread, 1e-12))
+        if abs(track_scale - 1.0) > c.heading_max_scale_error:
+            # The GNSS track is not the INS track rotated (a position jump, a fix from
+            # elsewhere): its rotation would be arbitrary. Start again from the latest fix.
+            self._heading_fixes = [self._heading_fixes[-1]]
+            self.events["heading_restarted"] += 1
+            return True
         sig_psi = max(math.sqrt(var_h / max(spread, 1e-6)), c.p0_attitude_sigma[2])
         Rz = rot_z(dpsi)
         # Rotate the whole navigation solution about the vertical.
