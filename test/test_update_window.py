@@ -72,3 +72,25 @@ def test_acceleration_source_and_what_it_misses():
     assert math.isnan(a) and missing["undriven wheel speeds"]
     a, missing = empty.acceleration("imu", 0.0, 9.80665, imu_bias_known=False)
     assert math.isnan(a) and missing["IMU bias (estimation/imu_bias)"]
+
+
+def test_acceleration_variance_is_the_fits_own():
+    """The noise variance of a window's acceleration: from the wheel-speed fit's residuals, and
+    the IMU mean's; averaged over many windows it matches the noise actually put in."""
+    rng = np.random.default_rng(4)
+    speed_noise, accel_noise = 0.01, 0.05
+    t = np.arange(25) * 0.01
+    spread = float(np.sum((t - t.mean()) ** 2))
+    wheel, imu, slopes = [], [], []
+    for _ in range(400):
+        w = UpdateWindow()
+        for tk in t:
+            w.add_wheel_speed(float(tk), 20.0 + 0.3 * float(tk) + speed_noise * float(rng.standard_normal()))
+            w.add_accel(0.3 + accel_noise * float(rng.standard_normal()))
+        wheel.append(w.acceleration_variance("auto"))
+        imu.append(w.acceleration_variance("imu"))
+        slopes.append(w.wheel_accel)
+    assert np.mean(wheel) == pytest.approx(speed_noise ** 2 / spread, rel=0.1)
+    assert np.var(slopes) == pytest.approx(speed_noise ** 2 / spread, rel=0.2)
+    assert np.mean(imu) == pytest.approx(accel_noise ** 2 / 25, rel=0.1)
+    assert math.isnan(UpdateWindow().acceleration_variance("wheel_speed"))

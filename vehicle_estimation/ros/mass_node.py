@@ -261,7 +261,8 @@ class MassNode(EstimatorNode):
                                engine_load=window.mean("engine_load"), gear=window.gear,
                                brake_torque=window.brake if self.core.window_brake == "max" else window.brake_mean,
                                regressor_bias_variance=window.mean("bias_variance"),
-                               regressor_bias_correlation_s=self.regressor_bias_correlation(t), **extra)
+                               regressor_bias_correlation_s=self.regressor_bias_correlation(t),
+                               accel_noise_variance=window.acceleration_variance(self.accel_source), **extra)
             window.clear()
         self._publish_and_persist(t)
 

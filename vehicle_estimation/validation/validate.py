@@ -17,6 +17,9 @@ Cases (``--cases``; default: all that can be made here):
 * ``fastsim_hills`` and its variants without GNSS and without wheel speeds, when FASTSim is
   installed (:mod:`.fastsim_drive`). Longitudinal: slope against the causal kinematic grade,
   mass against the offline batch least squares over the whole drive (:mod:`.baselines`).
+* ``fastsim_truck`` and ``fastsim_truck_no_gnss`` (:mod:`.fastsim_truck`): a 36 t truck
+  cruising a gentle long-haul road for 30 minutes in FASTSim, the low-excitation mass case
+  (the regressor varies by ~0.07 m/s^2); longitudinal, as the FASTSim car.
 * ``sim_hills``: *our own* simulator's hilly drive, labelled as such: the filters share its
   model, so it is a reference row, not evidence.
 
@@ -104,6 +107,18 @@ def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
     return [Case(Path(p).name, source, Path(p), vehicle, ("longitudinal",)) for p in paths]
 
 
+def _truck_cases(root: Path, *, quick: bool) -> list[Case]:
+    try:
+        from vehicle_estimation.validation import fastsim_truck
+        paths = fastsim_truck.generate(root / "truck", duration=600.0 if quick else None)
+    except ImportError as exc:
+        print(f"[validate] no FASTSim truck cases: {exc}")
+        return []
+    vehicle = root / "truck" / f"{fastsim_truck.VEHICLE_NAME}.yaml"
+    source = "NREL FASTSim 3.1.0 (Conv re-parametrised: 36 t class-8 truck, low excitation)"
+    return [Case(Path(p).name, source, Path(p), vehicle, ("longitudinal",)) for p in paths]
+
+
 def _sim_cases(root: Path, *, quick: bool) -> list[Case]:
     from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
@@ -121,7 +136,7 @@ def _sim_cases(root: Path, *, quick: bool) -> list[Case]:
 
 
 CASE_BUILDERS: dict[str, Callable[..., list[Case]]] = {
-    "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "sim": _sim_cases}
+    "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "truck": _truck_cases, "sim": _sim_cases}
 
 
 # ------------------------------------------------------------------------------------ scoring

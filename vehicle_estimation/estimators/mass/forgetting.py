@@ -150,6 +150,7 @@ class ForgettingMassEstimator:
         self._bias_lever = 0.0       # sum_k w_k rho^(t_n - t_k) (S when fully correlated) [m/s^2]
         self._bias_spread = 0.0      # V of the class docstring [m^2/s^4]
         self._bias_t = math.nan      # stamp of the last accepted sample [s]
+        self._noise_sum = 0.0        # sum_k lambda^(n-k) sigma_k^2 of phi's white noise [m^2/s^4]
         self._window: collections.deque[float] = collections.deque(maxlen=int(cfg.convergence_window))
         self.samples_used = 0
         self.rejected: dict[str, int] = {reason: 0 for reason in self.REJECT_REASONS}
@@ -170,6 +171,7 @@ class ForgettingMassEstimator:
             "residual_sq": float(self._res_sq),
             "bias_lever": float(self._bias_lever),
             "bias_spread": float(self._bias_spread),
+            "noise_sum": float(self._noise_sum),
             "samples_used": float(self.samples_used),
         }
 
@@ -189,8 +191,11 @@ class ForgettingMassEstimator:
         self._bias_lever = lever if math.isfinite(lever) and lever >= 0.0 else 0.0
         spread = float(state.get("bias_spread", self._bias_lever ** 2))   # older files: fully correlated
         self._bias_spread = spread if math.isfinite(spread) and spread >= 0.0 else self._bias_lever ** 2
+        noise_sum = float(state.get("noise_sum", 0.0))
+        self._noise_sum = noise_sum if math.isfinite(noise_sum) and noise_sum >= 0.0 else 0.0
         used = float(state.get("samples_used", 0.0))
         self.samples_used = int(used) if math.isfinite(used) and used >= 0 else 0
+        self._reset_method_state()      # what the method keeps beside the RLS starts from the loaded state
 
     # ------------------------------------------------------------------ outputs
     @property
@@ -213,8 +218,11 @@ class ForgettingMassEstimator:
 
     @property
     def bias_variance(self) -> float:
-        """The share of :attr:`variance` that a lasting regressor error leaves [kg^2]."""
-        return (self.mass * self.rls.p) ** 2 * self._bias_spread
+        """The share of :attr:`variance` that regressor errors leave, which the residuals cannot
+        show [kg^2]: the caller's lasting bias, and the errors-in-variables bias of phi's white
+        noise (see :meth:`_accepted`)."""
+        lever_sq = self._bias_spread + self._noise_sum ** 2
+        return (self.mass * self.rls.p) ** 2 * lever_sq
 
     @property
     def variance(self) -> float:
@@ -255,11 +263,18 @@ class ForgettingMassEstimator:
         return False
 
     def _accepted(self, t: float, phi: float, y: float, residual_sq: float,
-                  regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf) -> bool:
+                  regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf,
+                  regressor_noise_variance: float = 0.0) -> bool:
         """Book-keeping after an RLS update at ``t`` with a-priori squared residual
         ``residual_sq``; ``regressor_bias_variance`` [m^2/s^4] and its correlation time
-        ``regressor_bias_correlation_s`` [s] feed the lasting error's share of the variance."""
+        ``regressor_bias_correlation_s`` [s] feed the lasting error's share of the variance.
+        ``regressor_noise_variance`` [m^2/s^4]: phi's white noise on this sample (the
+        acceleration's), which biases least squares
+        towards zero by m p sum(lambda^k sigma_k^2) (errors-in-variables): that bias, which the
+        residuals cannot show, enters the variance."""
         lam = self.config.forgetting_factor
+        noise = regressor_noise_variance if finite_number(regressor_noise_variance) else 0.0
+        self._noise_sum = lam * self._noise_sum + max(noise, 0.0)
         self._res_weight = lam * self._res_weight + 1.0
         self._res_sq = lam * self._res_sq + residual_sq
         var = regressor_bias_variance

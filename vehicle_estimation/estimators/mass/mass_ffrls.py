@@ -181,7 +181,8 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
              engine_torque: float = math.nan, engine_speed: float = math.nan,
              engine_load: float = math.nan, gear: float = math.nan,
              brake_torque: float = 0.0, heading: float = math.nan,
-             regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf) -> bool:
+             regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf,
+             accel_noise_variance: float = 0.0) -> bool:
         """Process one sample; return True when it updated the estimate (Eq. 30).
 
         ``regressor_bias_variance`` [m^2/s^4]: the variance of a lasting error in Omega_m (the
@@ -201,6 +202,9 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
            wheels), divided by R_t;
         3. ``engine_torque`` [N m] × eta_t × i_g i_0 / R_t, the gear from ``gear`` (1-based)
            or predicted from ``engine_speed`` [rad/s] and ``vx`` (paper 003 Eqs. 10-11).
+
+        ``accel_noise_variance`` [m^2/s^4]: the white noise of ``ax``, whose errors-in-variables
+        bias enters the variance (as for the RLS).
 
         ``engine_load`` and ``heading`` are accepted for call compatibility with
         :meth:`LongitudinalMassEstimator.step` and not used (paper 004 has no torque map and
@@ -265,4 +269,4 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
             self.rls.theta, self.rls.p, self.rls.last_residual = theta_before, p_before, residual_before
             return self._reject("nan")
         return self._accepted(t, omega, y, residual * residual, regressor_bias_variance,
-                              regressor_bias_correlation_s)
+                              regressor_bias_correlation_s, regressor_noise_variance=accel_noise_variance)

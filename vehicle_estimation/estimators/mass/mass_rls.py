@@ -118,10 +118,12 @@ class MassRLSConfig(ForgettingConfig):
         """Whether the road-load EKF runs (wind, rolling resistance or both)."""
         return bool(self.wind_compensation or self.rolling_resistance_estimation)
 
-    def wind_config(self) -> WindEstimatorConfig:
-        """The road-load EKF's config from the ``wind_*`` and ``rolling_resistance_*`` fields."""
+    def wind_config(self, initial_mass_std: float) -> WindEstimatorConfig:
+        """The road-load EKF's config from the ``wind_*`` and ``rolling_resistance_*`` fields, its
+        nuisance mass a priori ``initial_mass_std`` from the RLS's own [kg]."""
         force_std = self.rolling_resistance_force_std if self.rolling_resistance_estimation else self.wind_force_std
         return WindEstimatorConfig(force_std=force_std, random_walk=self.wind_random_walk,
+                                   initial_mass_std=initial_mass_std,
                                    mass_random_walk=self.wind_mass_random_walk,
                                    initial_wind_std=self.wind_initial_std, min_speed=self.wind_min_speed,
                                    estimate_wind=bool(self.wind_compensation),
@@ -241,8 +243,11 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         # The wind is re-estimated after every reset (it is not persisted: it changes between drives).
         self.wind: WindEstimator | None = None
         if self.config.road_load_estimation:
-            self.wind = WindEstimator(self.params.air_density, self.params.drag_area, self.config.initial_mass,
-                                      self.config.wind_config())
+            # The EKF's mass starts where the RLS stands and as uncertain: with a tighter prior
+            # than the RLS's (a 36 t truck against the paper's 1000 kg m(0)), the EKF explains
+            # the missing mass as rolling resistance, and Eq. (5) then takes it from the RLS.
+            self.wind = WindEstimator(self.params.air_density, self.params.drag_area, self.rls.theta,
+                                      self.config.wind_config(math.sqrt(self.variance)))
 
     @property
     def needs_heading(self) -> bool:  # type: ignore[override]
@@ -278,14 +283,17 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
              drive_force: float = math.nan, engine_torque: float = math.nan,
              engine_speed: float = math.nan, engine_load: float = math.nan,
              gear: float = math.nan, brake_torque: float = 0.0, heading: float = math.nan,
-             regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf) -> bool:
+             regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf,
+             accel_noise_variance: float = 0.0) -> bool:
         """Process one sample; return True when it updated the RLS.
 
         ``t`` [s], ``vx`` longitudinal speed [m/s], ``ax`` longitudinal acceleration dv/dt
         [m/s^2] (not the IMU specific force), ``slope`` road grade alpha [rad, + uphill];
         ``regressor_bias_variance`` [m^2/s^4] the variance of a lasting error in
         ax + g sin(slope), i.e. of the accelerometer bias, ``regressor_bias_correlation_s``
-        [s] how long that error lasts (class docstring).
+        [s] how long that error lasts (class docstring); ``accel_noise_variance`` [m^2/s^4] the
+        variance of ``ax``'s white noise (a speed fit's over a 0.25 s window: ~0.03 m/s^2), whose
+        errors-in-variables bias enters the variance.
 
         Propulsion force F_p, first available of:
 
@@ -385,4 +393,4 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
 
         self.rls.update(phi, y)                                                   # Eqs. (7)-(9)
         return self._accepted(t, phi, y, self.rls.last_residual ** 2, regressor_bias_variance,
-                              regressor_bias_correlation_s)
+                              regressor_bias_correlation_s, regressor_noise_variance=accel_noise_variance)

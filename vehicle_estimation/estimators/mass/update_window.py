@@ -49,6 +49,7 @@ class UpdateWindow:
         self.sums = dict.fromkeys(self.FIELDS, 0.0)
         self.counts = dict.fromkeys(self.FIELDS, 0)
         self.accel_sum = 0.0
+        self.accel_sq_sum = 0.0
         self.accel_n = 0
         self.wheel_t: list[float] = []
         self.wheel_v: list[float] = []
@@ -62,6 +63,7 @@ class UpdateWindow:
 
     def add_accel(self, ax_specific: float) -> None:
         self.accel_sum += ax_specific
+        self.accel_sq_sum += ax_specific * ax_specific
         self.accel_n += 1
 
     def add(self, t: float, brake: float, gear: float, **values: float) -> None:
@@ -95,6 +97,20 @@ class UpdateWindow:
             return math.nan
         return float(np.polyfit(t, np.asarray(v_list), 1)[0])
 
+    @staticmethod
+    def speed_slope_variance(t_list: list[float], v_list: list[float]) -> float:
+        """Variance of :meth:`speed_slope` from the fit's residuals [m^2/s^4] (NaN below 4 samples)."""
+        if len(t_list) < 4:
+            return math.nan
+        t = np.asarray(t_list) - t_list[0]
+        v = np.asarray(v_list)
+        spread = float(np.sum((t - t.mean()) ** 2))
+        if spread <= 0.0:
+            return math.nan
+        slope, offset = np.polyfit(t, v, 1)
+        residual = v - (slope * t + offset)
+        return float(np.sum(residual * residual)) / (len(t_list) - 2) / spread
+
     @property
     def wheel_accel(self) -> float:
         """Least-squares slope of the undriven wheels' speed over the window [m/s^2]."""
@@ -119,6 +135,20 @@ class UpdateWindow:
     @property
     def gear(self) -> float:
         return next(iter(self.gears)) if len(self.gears) == 1 else math.nan
+
+    def acceleration_variance(self, source: str) -> float:
+        """Variance of the noise in :meth:`acceleration` from ``source`` over this window
+        [m^2/s^4]: the speed fit's for the wheels and the vehicle state, the IMU mean's for
+        the IMU (NaN where it cannot be told). ``auto`` as :meth:`acceleration` chooses."""
+        if source == "vehicle_state":
+            return self.speed_slope_variance(self.state_t, self.state_v)
+        if source in ("wheel_speed", "auto"):
+            if math.isfinite(self.wheel_accel) or source == "wheel_speed":
+                return self.speed_slope_variance(self.wheel_t, self.wheel_v)
+        if self.accel_n < 2:
+            return math.nan
+        mean = self.accel_sum / self.accel_n
+        return max(self.accel_sq_sum / self.accel_n - mean * mean, 0.0) / (self.accel_n - 1)
 
     def acceleration(self, source: str, slope: float, gravity: float,
                      imu_bias_known: bool) -> tuple[float, dict[str, bool]]:
