@@ -18,7 +18,7 @@ Subcommands::
                                                         column logs (CSV/text) -> contract bag
     vehicle-estimation stanford [--out DIR]             real Stanford drive: state filters vs
                                                         the linear single-track KF baseline
-    vehicle-estimation validate [--out DIR] [--cases commonroad,fastsim,sim] [--quick]
+    vehicle-estimation validate [--out DIR] [--cases commonroad,fastsim,truck,sim] [--quick]
                                                         every estimator vs a textbook baseline,
                                                         on drives our simulator did not make
     vehicle-estimation params [--write|--check README.md] the parameter reference of every node

@@ -63,7 +63,7 @@ from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
 from vehicle_estimation.sim import bag as simbag
 from vehicle_estimation.sim.noise import band_limited_noise
-from vehicle_estimation.validation.vehicle_yaml import format_vehicle_yaml
+from vehicle_estimation.validation import road_drive as rd
 
 G_MODEL = 9.81                   # the model's gravity constant [m/s^2]
 SIM_RATE_HZ = 1000
@@ -176,7 +176,7 @@ def params_yaml(p=None) -> str:
         "# the Dugoff tyre saturates the unloaded inner wheels of this light, high car early in a",
         "# corner (issue 13: sideslip 40-70 % too large in the step steer's steady state).",
     ]
-    return format_vehicle_yaml(header, v, notes)
+    return rd.format_vehicle_yaml(header, v, notes)
 
 
 # --------------------------------------------------------------------------- manoeuvres

@@ -88,7 +88,6 @@ from pathlib import Path
 import numpy as np
 
 from vehicle_estimation.validation import road_drive as rd
-from vehicle_estimation.validation.vehicle_yaml import format_vehicle_yaml
 
 FASTSIM_VERSION = "3.1.0"
 VEHICLE_RESOURCE = "2012_Ford_Fusion.yaml"
@@ -143,12 +142,8 @@ def grade_of_distance(s) -> np.ndarray:
 
 def cycle_arrays(duration: float | None = None, rate_hz: int = SIM_RATE_HZ) -> dict[str, np.ndarray]:
     """Time, speed and grade of the FASTSim cycle (the grade looked up at the cycle's distance)."""
-    duration = FULL_DURATION if duration is None else float(duration)
-    n = round(duration * rate_hz) + 1
-    t = np.arange(n) / rate_hz
-    v = speed_trace(t)
-    dist = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / rate_hz)])
-    return {"t": t, "speed": v, "grade": grade_of_distance(dist), "dist": dist}
+    return rd.road_cycle(FULL_DURATION if duration is None else duration, rate_hz, SPEED_POINTS, GRADE_TERMS,
+                         LEVEL_START_M)
 
 
 def load_vehicle():
@@ -386,7 +381,7 @@ def params_yaml(data: dict | None = None, *, drag_k: float | None = None) -> str
         "# it comes from FASTSim, is derived from it, or is a guess (FASTSim is a longitudinal,",
         "# power-based model: no engine speed, gearbox, tyres, suspension or lateral dynamics).",
     ]
-    return format_vehicle_yaml(header, v, notes)
+    return rd.format_vehicle_yaml(header, v, notes)
 
 
 # --------------------------------------------------------------------------- output

@@ -38,7 +38,6 @@ import numpy as np
 
 from vehicle_estimation.validation import fastsim_drive as fd
 from vehicle_estimation.validation import road_drive as rd
-from vehicle_estimation.validation.vehicle_yaml import format_vehicle_yaml
 
 VEHICLE_NAME = "fastsim_class8_truck"
 FULL_DURATION = 1800.0           # [s]
@@ -89,22 +88,10 @@ def load_vehicle():
         return fsim.Vehicle.from_dict(data)
 
 
-def speed_trace(t) -> np.ndarray:
-    return rd.knot_trace(t, SPEED_POINTS)
-
-
-def grade_of_distance(s) -> np.ndarray:
-    return rd.sine_grade(s, GRADE_TERMS, LEVEL_START_M)
-
-
 def cycle_arrays(duration: float | None = None, rate_hz: int = SIM_RATE_HZ) -> dict[str, np.ndarray]:
     """Time, speed and grade of the cycle (the grade at the cycle's distance)."""
-    duration = FULL_DURATION if duration is None else float(duration)
-    n = round(duration * rate_hz) + 1
-    t = np.arange(n) / rate_hz
-    v = speed_trace(t)
-    dist = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / rate_hz)])
-    return {"t": t, "speed": v, "grade": grade_of_distance(dist), "dist": dist}
+    return rd.road_cycle(FULL_DURATION if duration is None else duration, rate_hz, SPEED_POINTS, GRADE_TERMS,
+                         LEVEL_START_M)
 
 
 def simulate(duration: float | None = None) -> fd.Drive:
@@ -151,7 +138,7 @@ def params_yaml(*, drag_k: float | None = None) -> str:
         "# re-parametrised (vehicle_estimation.validation.fastsim_truck.TRUCK), the vehicle of the",
         "# low-excitation mass drive. Written by vehicle_estimation.validation.fastsim_truck.params_yaml().",
     ]
-    return format_vehicle_yaml(header, values, notes)
+    return rd.format_vehicle_yaml(header, values, notes)
 
 
 VARIANTS = {"fastsim_truck": (True, True), "fastsim_truck_no_gnss": (False, True)}

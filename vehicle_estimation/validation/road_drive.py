@@ -4,8 +4,9 @@ A car on a straight hilly road with no lateral motion and no suspension (the bod
 road): a speed trace of knots joined by smoothsteps, a road grade of sines of the distance, the
 kinematic truth of such a drive, and the IMU, CAN speed, wheel and GNSS samples of our topic
 contract made from it (noise and constant biases drawn from one ``numpy`` generator, in the order
-the callers draw them), and the bag writer with its variants (with or without ``gnss/fix`` and
-``vehicle/joint_states``).
+the callers draw them), the bag writer with its variants (with or without ``gnss/fix`` and
+``vehicle/joint_states``), and the vehicle file written from another simulator's data, each
+value with its origin (:func:`format_vehicle_yaml`, CommonRoad's too).
 """
 
 from __future__ import annotations
@@ -47,6 +48,17 @@ def sine_grade(s, terms, level_start: float) -> np.ndarray:
     s = np.asarray(s, dtype=float)
     g = sum(a * np.sin(2.0 * np.pi * s / wl + ph) for a, wl, ph in terms)
     return g * smoothstep(s / level_start)
+
+
+def road_cycle(duration: float, rate_hz: int, speed_points, grade_terms, level_start: float) -> dict[str, np.ndarray]:
+    """A simulator's cycle: time at ``rate_hz`` over ``duration`` [s], the speed through the
+    ``speed_points`` knots (:func:`knot_trace`) and the grade of :func:`sine_grade` looked up
+    at the cycle's distance (trapezoid)."""
+    n = round(float(duration) * rate_hz) + 1
+    t = np.arange(n) / rate_hz
+    v = knot_trace(t, speed_points)
+    dist = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) / rate_hz)])
+    return {"t": t, "speed": v, "grade": sine_grade(dist, grade_terms, level_start), "dist": dist}
 
 
 def every(t: np.ndarray, rate: float) -> np.ndarray:
@@ -163,3 +175,23 @@ def generator_main(argv, module, *, out_help: str) -> int:
     for path in module.generate(args.out, seed=args.seed, duration=args.duration):
         print(path)
     return 0
+
+
+def format_vehicle_yaml(header: list[str], values: dict, notes: dict[str, str]) -> str:
+    """``/**: ros__parameters: vehicle:`` with ``values``, each line commented by ``notes[key]``.
+
+    ``header``: comment lines (with their ``#``) that say where the data come from. A value
+    that is a string is written as it is.
+    """
+    lines = [*header, "/**:", "  ros__parameters:", "    vehicle:"]
+    for key, value in values.items():
+        if isinstance(value, str):
+            text = value
+        elif isinstance(value, list):
+            # repr keeps "1.0" a float: a ROS params file refuses an array of mixed types.
+            text = "[" + ", ".join(repr(float(x)) for x in value) + "]"
+        else:
+            text = repr(round(float(value), 6))
+        note = notes.get(key, "")
+        lines.append(f"      {key}: {text}" + (f"   # {note}" if note else ""))
+    return "\n".join(lines) + "\n"

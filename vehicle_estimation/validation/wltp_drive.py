@@ -113,7 +113,6 @@ from pathlib import Path
 import numpy as np
 
 from vehicle_estimation.validation import road_drive as rd
-from vehicle_estimation.validation.vehicle_yaml import format_vehicle_yaml
 
 WLTP_VERSION = "0.1.2a0"
 VEHICLE_NAME = "wltp_midsize_petrol"
@@ -412,7 +411,7 @@ def params_yaml() -> str:
         "# are guesses, for `vehicle-estimation calibrate BAG --mass KG --vehicle THIS_FILE` to fit.",
         "# Written by vehicle_estimation.validation.wltp_drive.params_yaml().",
     ]
-    return format_vehicle_yaml(header, vehicle_params_mapping(), notes)
+    return rd.format_vehicle_yaml(header, vehicle_params_mapping(), notes)
 
 
 # --------------------------------------------------------------------------- output
