@@ -269,9 +269,8 @@ class ForgettingMassEstimator:
         ``residual_sq``; ``regressor_bias_variance`` [m^2/s^4] and its correlation time
         ``regressor_bias_correlation_s`` [s] feed the lasting error's share of the variance.
         ``regressor_noise_variance`` [m^2/s^4]: phi's white noise on this sample (the
-        acceleration's), which biases least squares
-        towards zero by m p sum(lambda^k sigma_k^2) (errors-in-variables): that bias, which the
-        residuals cannot show, enters the variance."""
+        acceleration's), which biases least squares towards zero by m p sum(lambda^k sigma_k^2)
+        (errors-in-variables): that bias, which the residuals cannot show, enters the variance."""
         lam = self.config.forgetting_factor
         noise = regressor_noise_variance if finite_number(regressor_noise_variance) else 0.0
         self._noise_sum = lam * self._noise_sum + max(noise, 0.0)
