@@ -29,8 +29,8 @@ The drive (``FULL_DURATION`` 605 s, 11.7 km; ``duration`` cuts it short, the fir
 have a start, cruise, braking and hills of -6 to +5 %): a speed trace of ``SPEED_POINTS`` joined
 by smoothsteps (peak accelerations 1.0-1.9 m/s^2, decelerations 1.1-2.7 m/s^2, three stops
 besides the start, speeds up to 30 m/s) and a road
-grade that is a function of the distance along the road (:func:`grade_of_distance`: three
-sines of 370-1900 m wavelength, level for the first ~60 m, within +-6 %). FASTSim's ``Cycle``
+grade that is a function of the distance along the road (``GRADE_TERMS`` by
+:func:`.road_drive.sine_grade`: three sines of 370-1900 m wavelength, level for the first ~60 m, within +-6 %). FASTSim's ``Cycle``
 takes the time, the speed and, per time step, the grade at the cycle's distance. It is walked
 (``SimDrive.walk()``) at ``SIM_RATE_HZ`` = 200 Hz (5 ms steps).
 
@@ -128,16 +128,6 @@ def _fastsim():
 
 # --------------------------------------------------------------------------- the drive
 _smoothstep = rd.smoothstep
-
-
-def speed_trace(t) -> np.ndarray:
-    """The cycle's speed [m/s] at times ``t`` [s] (``SPEED_POINTS`` joined by smoothsteps)."""
-    return rd.knot_trace(t, SPEED_POINTS)
-
-
-def grade_of_distance(s) -> np.ndarray:
-    """Road grade (rise over run) at the distance ``s`` [m] along the road."""
-    return rd.sine_grade(s, GRADE_TERMS, LEVEL_START_M)
 
 
 def cycle_arrays(duration: float | None = None, rate_hz: int = SIM_RATE_HZ) -> dict[str, np.ndarray]:

@@ -89,27 +89,25 @@ class UpdateWindow:
             self.state_v.append(v)
 
     @staticmethod
-    def speed_slope(t_list: list[float], v_list: list[float]) -> float:
+    def speed_fit(t_list: list[float], v_list: list[float]) -> tuple[float, float]:
+        """Least-squares slope of the speeds [m/s^2] (NaN below 3 samples) and its variance
+        from the fit's residuals [m^2/s^4] (NaN below 4 samples)."""
         if len(t_list) < 3:
-            return math.nan
+            return math.nan, math.nan
         t = np.asarray(t_list) - t_list[0]
         if t[-1] <= 0.0:
-            return math.nan
-        return float(np.polyfit(t, np.asarray(v_list), 1)[0])
-
-    @staticmethod
-    def speed_slope_variance(t_list: list[float], v_list: list[float]) -> float:
-        """Variance of :meth:`speed_slope` from the fit's residuals [m^2/s^4] (NaN below 4 samples)."""
-        if len(t_list) < 4:
-            return math.nan
-        t = np.asarray(t_list) - t_list[0]
+            return math.nan, math.nan
         v = np.asarray(v_list)
-        spread = float(np.sum((t - t.mean()) ** 2))
-        if spread <= 0.0:
-            return math.nan
         slope, offset = np.polyfit(t, v, 1)
+        if len(t_list) < 4:
+            return float(slope), math.nan
         residual = v - (slope * t + offset)
-        return float(np.sum(residual * residual)) / (len(t_list) - 2) / spread
+        spread = float(np.sum((t - t.mean()) ** 2))
+        return float(slope), float(np.sum(residual * residual)) / (len(t_list) - 2) / spread
+
+    @classmethod
+    def speed_slope(cls, t_list: list[float], v_list: list[float]) -> float:
+        return cls.speed_fit(t_list, v_list)[0]
 
     @property
     def wheel_accel(self) -> float:
@@ -141,10 +139,11 @@ class UpdateWindow:
         [m^2/s^4]: the speed fit's for the wheels and the vehicle state, the IMU mean's for
         the IMU (NaN where it cannot be told). ``auto`` as :meth:`acceleration` chooses."""
         if source == "vehicle_state":
-            return self.speed_slope_variance(self.state_t, self.state_v)
+            return self.speed_fit(self.state_t, self.state_v)[1]
         if source in ("wheel_speed", "auto"):
-            if math.isfinite(self.wheel_accel) or source == "wheel_speed":
-                return self.speed_slope_variance(self.wheel_t, self.wheel_v)
+            slope, variance = self.speed_fit(self.wheel_t, self.wheel_v)
+            if math.isfinite(slope) or source == "wheel_speed":
+                return variance
         if self.accel_n < 2:
             return math.nan
         mean = self.accel_sum / self.accel_n
