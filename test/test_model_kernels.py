@@ -72,7 +72,7 @@ def _inputs(t: float, x_true: np.ndarray, params: VehicleParams, wheels: bool, t
                          brake_torques=np.array([0.0, 0.0, 50.0, 50.0]) if torque else None)
 
 
-def _state_drive(core_class, params, config, compiled_on, steps=400, wheels=True, torque=False):
+def _state_drive(core_class, params, config, compiled_on, steps=400, wheels=True, torque=False, known_ay=None):
     core = core_class(params, config)
     core.use_compiled(compiled_on)
     rng = np.random.default_rng(7)
@@ -86,6 +86,8 @@ def _state_drive(core_class, params, config, compiled_on, steps=400, wheels=True
         z = z + rng.normal(0.0, [0.3, 0.3, 0.01])
         if k == 150:
             z[1] = np.nan                      # a rejected sample on both paths
+        if known_ay is not None:
+            core.set_lateral_acceleration_noise(known_ay(k))
         core.step(t, u, z)
         out.append(np.concatenate([core.x, core.P.ravel()]))
     return core, np.array(out)
@@ -280,3 +282,29 @@ def test_vb_diagonal_noise_compiled_gives_the_numpy_estimates():
     np.testing.assert_allclose(np.diag(R), np.diag(full), rtol=1e-12)
     _, c = _state_drive(VehicleStateVBACKF, SEDAN, VehicleStateConfig(), True)
     assert float(np.max(np.abs(c - b) / scale)) > 1e-6      # it is another filter
+
+
+@pytest.mark.parametrize("core_class", [VehicleStateCKF, VehicleStateVBACKF])
+def test_known_lateral_noise_compiled_gives_the_numpy_estimates_and_weighs_ay_less(core_class):
+    """The node's roll-compensation variance on ay: the kernels add it to P_zz as numpy does
+    (0 before step 100, then a varying one), and a large one leaves ay nearly unused."""
+    def known(k):
+        return 0.0 if k < 100 else 2.0 + math.sin(0.05 * k)
+
+    numpy_core, a = _state_drive(core_class, SEDAN, VehicleStateConfig(), False, known_ay=known)
+    compiled_core, b = _state_drive(core_class, SEDAN, VehicleStateConfig(), True, known_ay=known)
+    scale = np.maximum(np.max(np.abs(a), axis=0), 1e-9)
+    assert float(np.max(np.abs(a - b) / scale)) < 1e-9
+    _, plain = _state_drive(core_class, SEDAN, VehicleStateConfig(), True)
+    assert float(np.max(np.abs(plain[:100] - b[:100]) / scale)) == 0.0     # nothing known: unchanged
+    gains = []
+    for variance in (0.0, 1e4):
+        core = core_class(SEDAN)
+        core.set_lateral_acceleration_noise(variance)
+        x_true = np.array([25.0, 0.4, 0.15, 0.8, 3.0])
+        core.step(10.0, _inputs(10.0, x_true, SEDAN, True, False), np.array([1.0, 3.0, 0.15]))
+        core.step(10.01, _inputs(10.01, x_true, SEDAN, True, False), np.array([1.1, 2.9, 0.16]))
+        gains.append(np.abs(core.filter.last_gain[:, 1]).max())
+    assert gains[1] < 0.01 * gains[0]
+    core.set_lateral_acceleration_noise(0.0)
+    assert core.filter.known_noise is None

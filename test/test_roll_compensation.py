@@ -37,11 +37,33 @@ def test_lateral_gravity_is_sin_roll_cos_pitch():
     q = quat_from_euler(roll, pitch, yaw)
     o = Msg.pose.pose.orientation
     o.x, o.y, o.z, o.w = (2.0 * float(v) for v in q)      # not normalised: still right
-    t, (stamp, g_y) = lateral_gravity_entry(Msg)
+    Msg.pose.covariance = [0.0] * 36                      # no covariance given
+    t, (stamp, g_y, variance) = lateral_gravity_entry(Msg)
     assert t == stamp == pytest.approx(12.5)
     assert g_y == pytest.approx(math.sin(roll) * math.cos(pitch), abs=1e-12)
+    assert math.isnan(variance)
     o.x = o.y = o.z = o.w = 0.0
     assert lateral_gravity_entry(Msg) is None
+
+
+def test_lateral_gravity_variance_is_that_of_the_roll_about_the_heading():
+    """The ENU-axes attitude covariance, turned to the body's heading, by Monte Carlo."""
+    from vehicle_estimation.estimators.common.rotations import (
+        gravity_on_body_y, gravity_on_body_y_variance, quat_multiply, quat_from_rotvec)
+
+    roll, pitch, yaw = math.radians(3.0), math.radians(2.0), math.radians(50.0)
+    q = np.asarray(quat_from_euler(roll, pitch, yaw), dtype=float)
+    # errors about world x, y, z: 1 deg about east, 0.2 deg about north, correlated; yaw free
+    cov = np.array([[math.radians(1.0) ** 2, 0.5 * math.radians(1.0) * math.radians(0.2), 0.0],
+                    [0.5 * math.radians(1.0) * math.radians(0.2), math.radians(0.2) ** 2, 0.0],
+                    [0.0, 0.0, math.radians(5.0) ** 2]])
+    rng = np.random.default_rng(3)
+    samples = [gravity_on_body_y(*quat_multiply(quat_from_rotvec(d), q))
+               for d in rng.multivariate_normal(np.zeros(3), cov, size=20000)]
+    predicted = gravity_on_body_y_variance(*q, cov[0, 0], cov[0, 1], cov[1, 1])
+    assert predicted == pytest.approx(float(np.var(samples)), rel=0.05)
+    # at a 50 deg heading the roll is mostly about north-east, not about east alone
+    assert predicted < 0.8 * cov[0, 0]
 
 
 def _sideslip_rmse_deg(bag: Path, start_s: float) -> tuple[float, dict[str, str]]:

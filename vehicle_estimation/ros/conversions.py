@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from vehicle_estimation.contract import topics
-from vehicle_estimation.estimators.common.rotations import gravity_on_body_y, yaw_of_quat
+from vehicle_estimation.estimators.common.rotations import gravity_on_body_y, gravity_on_body_y_variance, yaw_of_quat
 from vehicle_estimation.ros.stamps import stamp_to_sec
 
 NAN = float("nan")
@@ -184,9 +184,11 @@ def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
     return (t, (t, v, yaw_of_quat(q.x, q.y, q.z, q.w)))
 
 
-def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
-    """``(stamp, (stamp, g_y))`` of an Odometry, for a history: the share of gravity on the body
-    y axis, ``R[2, 1] = sin(roll) cos(pitch)`` of the base_link -> ENU ``pose.pose.orientation``.
+def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
+    """``(stamp, (stamp, g_y, variance of g_y))`` of an Odometry, for a history: the share of
+    gravity on the body y axis, ``R[2, 1] = sin(roll) cos(pitch)`` of the base_link -> ENU
+    ``pose.pose.orientation``, and its variance from the pose covariance (NaN where that is
+    not given: all zeros, a negative diagonal).
 
     A body-fixed accelerometer reads ``g g_y`` on y on top of the lateral acceleration when the
     body rolls on its suspension or the road is banked."""
@@ -194,7 +196,13 @@ def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
     t = stamp_to_sec(stamp)
     q = msg.pose.pose.orientation
     share = gravity_on_body_y(q.x, q.y, q.z, q.w)
-    return None if math.isnan(share) else (t, (t, share))
+    if math.isnan(share):
+        return None
+    c = msg.pose.covariance
+    cov_xx, cov_xy, cov_yy = float(c[21]), float(c[22]), float(c[28])
+    given = cov_xx > 0.0 and cov_yy > 0.0
+    variance = gravity_on_body_y_variance(q.x, q.y, q.z, q.w, cov_xx, cov_xy, cov_yy) if given else math.nan
+    return (t, (t, share, variance))
 
 
 def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:

@@ -142,6 +142,12 @@ class StateNode(EstimatorNode):
             "Remove from the measured lateral acceleration the gravity that the body's roll (on "
             "its suspension, and the road's bank) puts into it, with the fusion attitude "
             "(estimation/odometry); without it the tyre model reads g sin(roll) as lateral force")
+        self.roll_error_correlation_s = self.declare_float(
+            "roll_error_correlation_s", 1.0,
+            "Correlation time of the fusion's roll error [s]. The roll-compensated ay carries "
+            "g^2 var(roll) of error (the fusion's pose covariance) that changes over seconds, "
+            "which a filter stepping every dt weighs as white noise of 2 tau / dt times that "
+            "variance, added to its ay noise; 0 = the fusion's roll taken as exact", 0.0, 60.0)
         self.speed_fallback_std = self.declare_float(
             "speed_fallback_std", 0.3,
             "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
@@ -178,6 +184,7 @@ class StateNode(EstimatorNode):
         self._first_imu_t: float | None = None
         self._vx_measured = False     # by wheel speeds or vehicle/speed at the last filter step
         self._z_sum = np.zeros(3)
+        self._roll_ay_variance = 0.0   # g^2 var(roll) of the last fusion attitude used [(m/s^2)^2]
         self._z_count = 0
         self._last_step_t = -math.inf
         missing_slope_std = math.radians(self.declare_float(
@@ -284,6 +291,7 @@ class StateNode(EstimatorNode):
 
     def _roll_gravity(self, t: float) -> float:
         """The gravity on the body y axis at ``t`` [m/s^2] (0 without a fresh fusion attitude)."""
+        self._roll_ay_variance = 0.0
         if not self.roll_compensation:
             return 0.0
         item = self.attitude.at(t)
@@ -291,6 +299,8 @@ class StateNode(EstimatorNode):
             self.roll_source = "none (no fresh fusion attitude): lateral acceleration uncorrected"
             return 0.0
         self.roll_source = "fusion attitude"
+        variance = item[2]
+        self._roll_ay_variance = self.vehicle.gravity ** 2 * variance if math.isfinite(variance) else 0.0
         return self.vehicle.gravity * item[1]
 
     def _upstream(self, history: UpstreamHistory, t: float, default: float, what: str) -> float:
@@ -346,6 +356,9 @@ class StateNode(EstimatorNode):
         self._z_count = 0
         self._last_step_t = t
         reinitialisations = self.core.reinitialisations
+        # The roll's error is the same over many filter steps: as white noise it weighs 2 tau/dt.
+        self.core.set_lateral_acceleration_noise(
+            self._roll_ay_variance * 2.0 * self.roll_error_correlation_s * self.filter_rate)
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
         if self.core.reinitialisations != reinitialisations:

@@ -137,6 +137,22 @@ def gravity_on_body_y(x: float, y: float, z: float, w: float) -> float:
     return 2.0 * (y * z + w * x) / n
 
 
+def gravity_on_body_y_variance(x: float, y: float, z: float, w: float, cov_xx: float, cov_xy: float,
+                               cov_yy: float) -> float:
+    """Variance of :func:`gravity_on_body_y` from the attitude error covariance about the fixed
+    world x and y axes (the sensor_msgs/Imu and nav_msgs/Odometry convention): a small world
+    rotation ``d theta`` moves the body's gravity by ``R^T (d theta x e_z)``, whose y entry is
+    ``R[0, 1] d theta_y - R[1, 1] d theta_x`` (the rotation about the heading, i.e. the roll,
+    at a small pitch). NaN for a quaternion far from unit or a covariance that is not finite."""
+    n = x * x + y * y + z * z + w * w
+    if not (math.isfinite(n) and n > 0.5):
+        return math.nan
+    r01 = 2.0 * (x * y - w * z) / n
+    r11 = 1.0 - 2.0 * (x * x + z * z) / n
+    variance = r11 * r11 * cov_xx - 2.0 * r11 * r01 * cov_xy + r01 * r01 * cov_yy
+    return max(variance, 0.0) if math.isfinite(variance) else math.nan
+
+
 def rot_z(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -152,6 +152,10 @@ class AdditiveNoiseFilter(ABC):
         self.x_prior = self._x.copy()
         self.P_prior = self._P.copy()
         self.last_innovation: Optional[np.ndarray] = None
+        #: A measurement noise the caller knows and that changes with time (an input's own
+        #: uncertainty, e.g. the attitude a measurement was compensated with): added to ``R``
+        #: (or to a learnt ``R``) at every update while set; None = nothing added.
+        self.known_noise: Optional[np.ndarray] = None
 
     @property
     def x(self) -> np.ndarray:
@@ -175,8 +179,11 @@ class AdditiveNoiseFilter(ABC):
         """Measurement update with ``z``, the ``select``-ed channels of ``h(x, *args)``."""
 
     def _noise(self, R: Optional[np.ndarray], select) -> np.ndarray:
-        """``R`` (default: :attr:`R`) restricted to the ``select``-ed channels."""
+        """``R`` (default: :attr:`R`) plus :attr:`known_noise`, restricted to the ``select``-ed
+        channels."""
         R = self.R if R is None else np.asarray(R, dtype=float)
+        if self.known_noise is not None:
+            R = R + self.known_noise
         return R if select is None else R[np.ix_(select, select)]
 
 

@@ -37,6 +37,10 @@ from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 
 
+#: Index of the lateral specific force in every core's ``z = [ax, ay, r]``.
+AY_CHANNEL = 1
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelErrorSettings:
     """Model errors that no filter represents and that every core adds to its published
@@ -91,6 +95,19 @@ class VehicleStateCore(StepGuard, ABC):
         #: The per-step validity check by a compiled kernel (set with the filter's kernels).
         self.compiled_checks = False
         self._factor_work = np.empty_like(P0, dtype=float)
+
+    def set_lateral_acceleration_noise(self, variance: float) -> None:
+        """A known variance of the measured ay [(m/s^2)^2] on top of the filter's ``R`` (or its
+        learnt one) from the next update on; 0 removes it. The owner sets it from an input's own
+        uncertainty: the node takes g sin(roll) out of ay with the fusion's roll, whose error
+        enters the corrected ay one for one."""
+        variance = float(variance)
+        if not (math.isfinite(variance) and variance > 0.0):
+            self._filter.known_noise = None
+            return
+        known = np.zeros((self._filter.m, self._filter.m))
+        known[AY_CHANNEL, AY_CHANNEL] = variance
+        self._filter.known_noise = known
 
     # -- helpers -------------------------------------------------------------------------
     def _x0(self, vx0: Optional[float]) -> np.ndarray:

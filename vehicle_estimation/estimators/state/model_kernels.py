@@ -182,13 +182,13 @@ VB_OK, VB_REJECTED, VB_FAILED = 0, 1, 2
 
 
 @kernel
-def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, iterations, r_mean, diagonal,
+def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, R_known, iterations, r_mean, diagonal,
               innovation, Czz, Pxz, x_out, P_out, scale_out, K_out, Pzz_out):
     """``VariationalBayesCKF.update`` for an affine ``h = H x + c`` and a fixed ``N``: the
     closed-form moments of the prediction, then ``N`` times the residual moment
     ``B = e e^T + H P H^T``, ``V = V_pred + B``, ``R = V / (nu - d - 1)`` (``r_mean``) or
-    ``V / nu`` (Eq. 11), only its diagonal where ``diagonal``, ``P_zz = C_zz + R``, the gain
-    and the correction (Eqs. 12-13).
+    ``V / nu`` (Eq. 11), only its diagonal where ``diagonal``, ``P_zz = C_zz + R + R_known``
+    (``R_known``: a noise the caller knows, not learnt), the gain and the correction (Eqs. 12-13).
 
     Returns ``VB_OK``; ``VB_REJECTED`` where the moments are not finite (nothing written but
     the moments); ``VB_FAILED`` where ``V_pred`` or a ``P_zz`` is not positive definite or a
@@ -229,7 +229,8 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, iterations, r_mean,
                 scale_out[b, a] = v
         for a in range(m):
             for b in range(m):
-                Pzz_out[a, b] = Czz[a, b] + (scale_out[a, b] / divisor if a == b or not diagonal else 0.0)
+                Pzz_out[a, b] = (Czz[a, b] + (scale_out[a, b] / divisor if a == b or not diagonal else 0.0)
+                                 + R_known[a, b])
         if not cholesky_lower(Pzz_out, L):
             return VB_FAILED
         cholesky_solve_rows(L, Pxz, K_out)          # K = P_xz P_zz^-1
@@ -254,7 +255,8 @@ STEP_NO_FACTOR, STEP_PREDICTION_NOT_FINITE = 3, 4
 
 @kernel
 def vb_step(x, P, Q, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_torque, slip_forces, torque_known,
-            G, S, min_speed, rho, z, H, c, dof, scale, iterations, r_mean, diagonal, x_prior, P_prior, scale_pred,
+            G, S, min_speed, rho, z, H, c, R_known, dof, scale, iterations, r_mean, diagonal, x_prior, P_prior,
+            scale_pred,
             innovation, Czz, Pxz, x_out, P_out, scale_out, K_out, Pzz_out):
     """One VB-ACKF step in one call: :func:`cubature_predict` into ``x_prior``, ``P_prior``; the
     inverse-Wishart prediction ``nu = rho (nu - d - 1) + d + 1``, ``V = rho V`` (Fig. 3) into
@@ -272,7 +274,7 @@ def vb_step(x, P, Q, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_torque, 
     if not small_linalg.all_finite(x_prior, P_prior):
         return STEP_PREDICTION_NOT_FINITE
     d1 = m + 1.0
-    return vb_update(z, x_prior, P_prior, rho * (dof - d1) + d1, scale_pred, H, c, iterations, r_mean,
+    return vb_update(z, x_prior, P_prior, rho * (dof - d1) + d1, scale_pred, H, c, R_known, iterations, r_mean,
                      diagonal, innovation, Czz, Pxz, x_out, P_out, scale_out, K_out, Pzz_out)
 
 
@@ -363,12 +365,12 @@ def warm_up() -> None:
     x, P = np.array([10.0, 0.0, 0.0, 0.0, 0.0]), np.eye(5)
     model.predict(x, P, 0.01 * np.eye(5), 0.01, vm.VehicleInputs(wheel_speeds=np.full(4, 30.0)))
     H, c = vm.measurement_affine(vm.VehicleInputs(), model.params)
-    vb_update(np.zeros(3), x, P, 8.0, np.eye(3), H, c, 1, True, False, np.empty(3), np.empty((3, 3)),
+    vb_update(np.zeros(3), x, P, 8.0, np.eye(3), H, c, np.zeros((3, 3)), 1, True, False, np.empty(3), np.empty((3, 3)),
               np.empty((5, 3)), np.empty(5), np.empty((5, 5)), np.empty((3, 3)), np.empty((5, 3)), np.empty((3, 3)))
     affine_update(np.zeros(3), x, P, H, c, np.eye(3), np.empty(3), np.empty(5), np.empty((5, 5)),
                   np.empty((5, 3)), np.empty((3, 3)))
     step_arguments = (x, P, 0.01 * np.eye(5), *model.model_arguments(0.01, vm.VehicleInputs(wheel_speeds=np.full(4, 30.0))),
-                      0.9, np.zeros(3), H, c, 8.0, np.eye(3), 1, True, False, np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
+                      0.9, np.zeros(3), H, c, np.zeros((3, 3)), 8.0, np.eye(3), 1, True, False, np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
                       np.empty(3), np.empty((3, 3)), np.empty((5, 3)), np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
                       np.empty((5, 3)), np.empty((3, 3)))
     vb_step(*step_arguments)

@@ -171,6 +171,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         if not (is_positive_definite(self.R) and np.allclose(self.R, self.R.T)):
             raise ValueError("R must be a finite, symmetric positive-definite matrix")
         self.R0 = self.R.copy()
+        self._no_known_noise = np.zeros((self.m, self.m))
         self.vb_fallbacks = 0
         self.rejected_measurements = 0
         self.last_iterations = 0
@@ -259,6 +260,14 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         return self.h_affine if self.compiled_iterations and self.vb.tolerance == 0.0 else None
 
     # -- variational measurement update ---------------------------------------------------
+    def _known(self) -> np.ndarray:
+        """:attr:`known_noise`, or zeros: added to the learnt ``R`` in ``P_zz`` only. The
+        residual statistics stay those of every error, so what the known term does not
+        explain is still learnt (the two may count some error twice: cautious, not bold)."""
+        if self.known_noise is None:
+            return self._no_known_noise
+        return self.known_noise
+
     def _residual_second_moment(self, z: np.ndarray, x: np.ndarray, P: np.ndarray, args) -> np.ndarray:
         """``B = E_N(x,P)[(z - h(x))(z - h(x))^T]`` by the cubature rule ("adjustment matrix"),
         in closed form for an affine ``h``: ``e e^T + H P H^T`` with ``e = z - H x - c``."""
@@ -300,6 +309,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
 
         dof = dof_pred + 1.0
         x_i, P_i = x_pred, P_pred
+        known = self._known()
         try:
             # V_k|k-1 PD and B PSD (by construction) make every V^(i+1), R^(i+1) PD: check the
             # prediction once, then only that B is finite and P_zz factorises.
@@ -316,7 +326,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
                         raise _NumericalFailure
                     scale = scale_pred + B
                     R_i = self._point_estimate(dof, scale, self.vb.r_estimate)
-                    Pzz = Czz + R_i
+                    Pzz = Czz + R_i + known
                     if not is_positive_definite(Pzz):
                         raise _NumericalFailure
                     self._x, self._P = x_pred, P_pred
@@ -339,7 +349,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         same outcomes (rejection, fallback), the same numbers to 1e-12."""
         out = self._kernel_outputs()
         x_pred, P_pred, dof_pred, scale_pred = self._x, self._P, self._dof, self._scale
-        outcome = vb_update(z, x_pred, P_pred, float(dof_pred), scale_pred, H, c, self.vb.iterations,
+        outcome = vb_update(z, x_pred, P_pred, float(dof_pred), scale_pred, H, c, self._known(), self.vb.iterations,
                             self.vb.r_estimate == "mean", self.vb.diagonal, *out)
         self._take_outcome(outcome, out, x_pred, P_pred, dof_pred, scale_pred)
         return out[0]
@@ -358,7 +368,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         out = self._kernel_outputs()
         rho = self.forgetting_factor(dt)
         arguments = (self._x, self._P, Q, *model.model_arguments(dt, inputs), rho, z, *h_affine(inputs),
-                     float(self._dof), self._scale, self.vb.iterations, self.vb.r_estimate == "mean",
+                     self._known(), float(self._dof), self._scale, self.vb.iterations, self.vb.r_estimate == "mean",
                      self.vb.diagonal, x_prior, P_prior, scale_pred, *out)
         outcome = vb_step(*arguments)
         if outcome == STEP_NO_FACTOR:
@@ -399,10 +409,11 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         end, where a NaN or inf would still show. Raises :class:`_NumericalFailure` or
         ``LinAlgError`` as the general loop does."""
         kind = self.vb.r_estimate
+        known = self._known()
         with np.errstate(all="ignore"):
             for _ in range(self.vb.iterations):
                 scale = scale_pred + _affine_residual_moment(z, self._x, self._P, H, c)
-                Pzz = Czz + self._point_estimate(dof, scale, kind)
+                Pzz = Czz + self._point_estimate(dof, scale, kind) + known
                 np.linalg.cholesky(Pzz)          # LinAlgError: not positive definite
                 self._x, self._P = x_pred, P_pred
                 self.correct(innovation, Pzz, Pxz)
@@ -419,10 +430,10 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         if not (math.isfinite(dof_pred) and is_positive_definite(scale_pred)):
             self.reset_noise_statistics()
         self._x, self._P = x_pred, P_pred
-        R = self.R_estimate
+        R = self.R_estimate + self._known()
         with np.errstate(all="ignore"):
             if not is_positive_definite(Czz + R):
-                R = self.R0
+                R = self.R0 + self._known()
             try:
                 self.correct(innovation, Czz + R, Pxz)
                 ok = bool(np.isfinite(self._x).all() and np.isfinite(self._P).all())
