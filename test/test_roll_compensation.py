@@ -110,4 +110,7 @@ def test_roll_compensation_halves_the_sideslip_error(lane_change, tmp_path):
         results[name] = _sideslip_rmse_deg(out, start_s=6.0)
     (on, diag_on), (off_rmse, diag_off) = results["on"], results["off"]
     assert diag_on["roll compensation"] == "fusion attitude" and diag_off["roll compensation"] == "off"
+    # the fusion's roll uncertainty is in the ay noise, and /diagnostics says how large it is
+    assert float(diag_on["roll compensation sigma [m/s^2]"]) > 0.0
+    assert float(diag_off["roll compensation sigma [m/s^2]"]) == 0.0
     assert on < 0.6 * off_rmse, (on, off_rmse)

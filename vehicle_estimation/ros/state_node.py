@@ -428,6 +428,7 @@ class StateNode(EstimatorNode):
         extra["filter re-initialisations"] = str(self.core.reinitialisations)
         extra["vx source"] = self.vx_source
         extra["roll compensation"] = self.roll_source
+        extra["roll compensation sigma [m/s^2]"] = f"{math.sqrt(self._roll_ay_variance):.3f}"
         return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 

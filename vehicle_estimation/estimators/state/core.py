@@ -95,6 +95,7 @@ class VehicleStateCore(StepGuard, ABC):
         #: The per-step validity check by a compiled kernel (set with the filter's kernels).
         self.compiled_checks = False
         self._factor_work = np.empty_like(P0, dtype=float)
+        self._known_ay_noise: Optional[np.ndarray] = None
 
     def set_lateral_acceleration_noise(self, variance: float) -> None:
         """A known variance of the measured ay [(m/s^2)^2] on top of the filter's ``R`` (or its
@@ -105,9 +106,10 @@ class VehicleStateCore(StepGuard, ABC):
         if not (math.isfinite(variance) and variance > 0.0):
             self._filter.known_noise = None
             return
-        known = np.zeros((self._filter.m, self._filter.m))
-        known[AY_CHANNEL, AY_CHANNEL] = variance
-        self._filter.known_noise = known
+        if self._known_ay_noise is None:   # one matrix, rewritten at every step
+            self._known_ay_noise = np.zeros((self._filter.m, self._filter.m))
+        self._known_ay_noise[AY_CHANNEL, AY_CHANNEL] = variance
+        self._filter.known_noise = self._known_ay_noise
 
     # -- helpers -------------------------------------------------------------------------
     def _x0(self, vx0: Optional[float]) -> np.ndarray:
