@@ -62,15 +62,15 @@ def test_acceleration_source_and_what_it_misses():
     for k in range(5):
         window.add_wheel_speed(0.01 * k, 10.0 + 0.02 * k)
         window.add_accel(2.0 + 0.05)
-    a, missing = window.acceleration("auto", 0.0, 9.80665, imu_bias_known=True)
+    a, _, missing = window.acceleration("auto", 0.0, 9.80665, imu_bias_known=True)
     assert a == pytest.approx(2.0) and not any(missing.values())
     empty = UpdateWindow()
     empty.add_accel(1.0)
-    a, missing = empty.acceleration("auto", math.asin(0.05), 9.80665, imu_bias_known=True)
+    a, _, missing = empty.acceleration("auto", math.asin(0.05), 9.80665, imu_bias_known=True)
     assert a == pytest.approx(1.0 - 9.80665 * 0.05)
-    a, missing = empty.acceleration("wheel_speed", 0.0, 9.80665, imu_bias_known=True)
+    a, _, missing = empty.acceleration("wheel_speed", 0.0, 9.80665, imu_bias_known=True)
     assert math.isnan(a) and missing["undriven wheel speeds"]
-    a, missing = empty.acceleration("imu", 0.0, 9.80665, imu_bias_known=False)
+    a, _, missing = empty.acceleration("imu", 0.0, 9.80665, imu_bias_known=False)
     assert math.isnan(a) and missing["IMU bias (estimation/imu_bias)"]
 
 
@@ -87,10 +87,10 @@ def test_acceleration_variance_is_the_fits_own():
         for tk in t:
             w.add_wheel_speed(float(tk), 20.0 + 0.3 * float(tk) + speed_noise * float(rng.standard_normal()))
             w.add_accel(0.3 + accel_noise * float(rng.standard_normal()))
-        wheel.append(w.acceleration_variance("auto"))
-        imu.append(w.acceleration_variance("imu"))
+        wheel.append(w.acceleration("auto", 0.0, 9.80665, imu_bias_known=True)[1])
+        imu.append(w.acceleration("imu", 0.0, 9.80665, imu_bias_known=True)[1])
         slopes.append(w.wheel_accel)
     assert np.mean(wheel) == pytest.approx(speed_noise ** 2 / spread, rel=0.1)
     assert np.var(slopes) == pytest.approx(speed_noise ** 2 / spread, rel=0.2)
     assert np.mean(imu) == pytest.approx(accel_noise ** 2 / 25, rel=0.1)
-    assert math.isnan(UpdateWindow().acceleration_variance("wheel_speed"))
+    assert math.isnan(UpdateWindow().acceleration("wheel_speed", 0.0, 9.80665, imu_bias_known=True)[1])

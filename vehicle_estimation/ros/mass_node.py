@@ -242,7 +242,8 @@ class MassNode(EstimatorNode):
                        engine_speed=pt.engine_speed, engine_load=pt.engine_load)
         if window.closes(t, 1.0 / self.update_rate):
             slope = window.mean("slope")
-            ax, missing = window.acceleration(self.accel_source, slope, self.vehicle.gravity, self.bias.valid)
+            ax, ax_variance, missing = window.acceleration(self.accel_source, slope, self.vehicle.gravity,
+                                                           self.bias.valid)
             for what, is_missing in missing.items():
                 self.set_missing(what, is_missing)
             # No update on a guessed slope: a 1 % grade error is a 10 % error in phi at 1 m/s^2.
@@ -262,7 +263,7 @@ class MassNode(EstimatorNode):
                                brake_torque=window.brake if self.core.window_brake == "max" else window.brake_mean,
                                regressor_bias_variance=window.mean("bias_variance"),
                                regressor_bias_correlation_s=self.regressor_bias_correlation(t),
-                               accel_noise_variance=window.acceleration_variance(self.accel_source), **extra)
+                               accel_noise_variance=ax_variance, **extra)
             window.clear()
         self._publish_and_persist(t)
 

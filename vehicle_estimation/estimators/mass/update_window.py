@@ -115,11 +115,6 @@ class UpdateWindow:
         return self.speed_slope(self.wheel_t, self.wheel_v)
 
     @property
-    def state_accel(self) -> float:
-        """Least-squares slope of the vehicle-state node's vx over the window [m/s^2]."""
-        return self.speed_slope(self.state_t, self.state_v)
-
-    @property
     def brake_mean(self) -> float:
         return self.brake_sum / self.brake_n if self.brake_n else 0.0
 
@@ -134,25 +129,19 @@ class UpdateWindow:
     def gear(self) -> float:
         return next(iter(self.gears)) if len(self.gears) == 1 else math.nan
 
-    def acceleration_variance(self, source: str) -> float:
-        """Variance of the noise in :meth:`acceleration` from ``source`` over this window
-        [m^2/s^4]: the speed fit's for the wheels and the vehicle state, the IMU mean's for
-        the IMU (NaN where it cannot be told). ``auto`` as :meth:`acceleration` chooses."""
-        if source == "vehicle_state":
-            return self.speed_fit(self.state_t, self.state_v)[1]
-        if source in ("wheel_speed", "auto"):
-            slope, variance = self.speed_fit(self.wheel_t, self.wheel_v)
-            if math.isfinite(slope) or source == "wheel_speed":
-                return variance
+    def _imu_mean_variance(self) -> float:
+        """Variance of the mean specific force over this window [m^2/s^4] (NaN below 2 samples)."""
         if self.accel_n < 2:
             return math.nan
         mean = self.accel_sum / self.accel_n
         return max(self.accel_sq_sum / self.accel_n - mean * mean, 0.0) / (self.accel_n - 1)
 
     def acceleration(self, source: str, slope: float, gravity: float,
-                     imu_bias_known: bool) -> tuple[float, dict[str, bool]]:
+                     imu_bias_known: bool) -> tuple[float, float, dict[str, bool]]:
         """Longitudinal acceleration dv/dt over the window [m/s^2] from ``source`` (one of
-        :data:`ACCEL_SOURCES`), and which inputs it found missing (name -> missing).
+        :data:`ACCEL_SOURCES`), the variance of its noise [m^2/s^4] (the speed fit's for the
+        wheels and the vehicle state, the IMU mean's for the IMU; NaN where it cannot be told),
+        and which inputs it found missing (name -> missing).
 
         ``wheel_speed``: the slope of the undriven wheels' speed. It carries no gravity and no
         body pitch, so neither the accelerometer bias nor the suspension's squat and dive
@@ -162,18 +151,19 @@ class UpdateWindow:
         the slope of the vehicle-state node's vx (paper 004 Fig. 1: mass <- state).
         """
         if source == "vehicle_state":
-            a = self.state_accel
-            return a, {"vehicle state speed": not math.isfinite(a)}
+            a, variance = self.speed_fit(self.state_t, self.state_v)
+            return a, variance, {"vehicle state speed": not math.isfinite(a)}
         missing: dict[str, bool] = {}
         if source in ("wheel_speed", "auto"):
-            a = self.wheel_accel
+            a, variance = self.speed_fit(self.wheel_t, self.wheel_v)
             missing["undriven wheel speeds"] = not math.isfinite(a) and source == "wheel_speed"
             if math.isfinite(a) or source == "wheel_speed":
-                return a, missing
+                return a, variance, missing
         missing["IMU bias (estimation/imu_bias)"] = not imu_bias_known
+        variance = self._imu_mean_variance()
         if not imu_bias_known:
-            return math.nan, missing
-        return self.accel - gravity * math.sin(slope), missing
+            return math.nan, variance, missing
+        return self.accel - gravity * math.sin(slope), variance, missing
 
 
 def window_edges(powertrain_t: np.ndarray, period: float) -> np.ndarray:

@@ -430,10 +430,10 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         if not (math.isfinite(dof_pred) and is_positive_definite(scale_pred)):
             self.reset_noise_statistics()
         self._x, self._P = x_pred, P_pred
-        R = self.R_estimate + self._known()
+        R = self._noise(self.R_estimate, None)
         with np.errstate(all="ignore"):
             if not is_positive_definite(Czz + R):
-                R = self.R0 + self._known()
+                R = self._noise(self.R0, None)
             try:
                 self.correct(innovation, Czz + R, Pxz)
                 ok = bool(np.isfinite(self._x).all() and np.isfinite(self._P).all())
