@@ -115,12 +115,17 @@ def test_speckled_burst_is_replaced_and_a_lasting_change_is_accepted():
 
 
 def test_paper_tyre_defaults_and_cornering_stiffness_matching():
-    paper = ThreeDofModel.from_params(SEDAN, AOUKFConfig(mf_match_cornering_stiffness=False))
+    paper = ThreeDofModel.from_params(SEDAN, AOUKFConfig(mf_match_cornering_stiffness=False,
+                                                         mf_peak_from_road_friction=False))
     assert paper.B_front == pytest.approx(0.237 * 180.0 / math.pi)
     assert paper.C == 1.65 and paper.E == 0.707
     fz_front = 0.5 * SEDAN.mass * SEDAN.gravity * SEDAN.lr / SEDAN.wheelbase     # Eq. 3, per tyre
     assert paper.D_front == pytest.approx(3610.5 * fz_front / (1522.0 * 9.81 / 4.0))
     matched = ThreeDofModel.from_params(SEDAN, AOUKFConfig())
+    # the default tyre peaks at the vehicle's road friction: the model can reach mu g
+    assert matched.D_front == pytest.approx(SEDAN.road_friction * fz_front)
+    peak_ay = 2.0 * (matched.D_front + matched.D_rear) / SEDAN.mass
+    assert peak_ay == pytest.approx(SEDAN.road_friction * SEDAN.gravity)
     small = 1e-4                                          # slope at zero = B C D = cornering stiffness
     assert matched.tyre_force(small, matched.B_front, matched.D_front) / small == pytest.approx(
         SEDAN.cornering_stiffness_front, rel=1e-4)

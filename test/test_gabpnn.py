@@ -114,11 +114,28 @@ def test_shipped_weights_load_and_correct_the_aoukf_on_a_held_out_drive():
     scn = dataclasses.replace(scenario_by_name("paper002_mixed"), duration_s=60.0, seed=77)
     drive = drive_from_sim(simulate(scn))
     res = {}
-    for name, est in (("ukf", VehicleStateAOUKF(drive.params, AOUKFConfig(filter="ukf"))),
-                      ("aoukf", VehicleStateAOUKF(drive.params)),
-                      ("corrected", VehicleStateAOUKF(drive.params, correction=correction.fresh()))):
+    paper = AOUKFConfig(mf_peak_from_road_friction=False)      # the tyre the weights learnt
+    for name, est in (("ukf", VehicleStateAOUKF(drive.params, dataclasses.replace(paper, filter="ukf"))),
+                      ("aoukf", VehicleStateAOUKF(drive.params, paper)),
+                      ("corrected", VehicleStateAOUKF(drive.params, paper, correction=correction.fresh()))):
         res[name] = score(drive, run_estimator(drive, est), 2.0)
     for key in ("vy", "r"):
         assert res["corrected"]["mae"][key] < 0.8 * res["aoukf"]["mae"][key]
         assert res["corrected"]["rmse"][key] < res["ukf"]["rmse"][key]
     assert res["corrected"]["mae"]["vx"] < 1.1 * res["aoukf"]["mae"]["vx"]
+
+
+def test_the_node_runs_the_correction_on_the_tyre_it_learnt():
+    """A GA-BPNN correction learnt the residuals of the paper's tyre: the registry runs that
+    tyre with it, and the road-friction tyre (the default) without it."""
+    from vehicle_estimation.estimators.registry import build_state_filter
+    from vehicle_estimation.contract.vehicle import load_vehicle_params
+    from vehicle_estimation.paths import params_file
+
+    sedan = load_vehicle_params(params_file("sedan_d_class"))
+    correction = load_correction(default_weights_path("sedan_d_class"))
+    plain = build_state_filter("aoukf", sedan)
+    corrected = build_state_filter("aoukf", sedan, correction=correction.fresh())
+    fz_front = 0.5 * sedan.mass * sedan.gravity * sedan.lr / sedan.wheelbase
+    assert plain.model.D_front == pytest.approx(sedan.road_friction * fz_front)
+    assert corrected.model.D_front == pytest.approx(3610.5 * fz_front / (1522.0 * 9.81 / 4.0))

@@ -218,6 +218,10 @@ def _vbackf(vehicle: VehicleParams, config: Any, settings: StateSettings, correc
 
 def _aoukf(vehicle: VehicleParams, config: Any, settings: StateSettings, correction: Any) -> StateEstimator:
     from vehicle_estimation.estimators.state.aoukf import VehicleStateAOUKF
+    if correction is not None and config is not None and config.mf_peak_from_road_friction:
+        # the GA-BPNN learnt the residuals of the paper's tyre (train_gabpnn); on another
+        # tyre it would correct errors the filter does not make
+        config = dataclasses.replace(config, mf_peak_from_road_friction=False)
     return _with_model_error(VehicleStateAOUKF(vehicle, config, correction), settings)
 
 

@@ -124,7 +124,8 @@ def make_estimators(params: VehicleParams, correction: Any = None,
     from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
     from vehicle_estimation.estimators.state.vbackf import VehicleStateVBACKF
 
-    cfg = AOUKFConfig() if config is None else config
+    # the paper's tyre (its D), as the GA-BPNN weights were trained on (train_gabpnn)
+    cfg = AOUKFConfig(mf_peak_from_road_friction=False) if config is None else config
     rows: dict[str, Callable[[], Any]] = {
         "EKF": lambda: VehicleStateAOUKF(params, dataclasses.replace(cfg, filter="ekf")),
         "UKF": lambda: VehicleStateAOUKF(params, dataclasses.replace(cfg, filter="ukf")),
@@ -155,7 +156,7 @@ def run_scenario(scenario: Any, correction: Any, warmup_s: float, *, paper_obser
                               "rows": {}, "rows_no_wheel_speeds": {}}
     groups = [("rows", make_estimators(drive.params, correction))]
     if paper_observations:
-        cfg = AOUKFConfig(wheel_speed_update=False)
+        cfg = AOUKFConfig(wheel_speed_update=False, mf_peak_from_road_friction=False)
         groups.append(("rows_no_wheel_speeds",
                        {k: v for k, v in make_estimators(drive.params, None, cfg).items() if k in NO_WHEELS_ROWS}))
     for group, factories in groups:

@@ -20,7 +20,12 @@ Choices where the paper is not explicit (all in :class:`AOUKFConfig`)
   Table-1 car, slip angle in degrees, ``D`` in N per tyre). ``D`` follows the axle load of
   Eq. 3 as ``D = mf_d F_z / mf_reference_load`` (the linear term ``a2 F_z`` of the paper's
   ``D = a1 F_z^2 + a2 F_z``; the reference load is the mean tyre load of the paper's Table-1
-  car, ``1522 g / 4``). With ``mf_match_cornering_stiffness`` (default) ``B`` is set per axle
+  car, ``1522 g / 4``), a friction coefficient of 0.97. With ``mf_peak_from_road_friction``
+  (default) ``D = road_friction F_z`` instead: a model whose tyres cannot reach the measured
+  lateral acceleration has no slip angle that explains the measurement, and past the Magic
+  Formula's peak its force falls as the slip grows, so the filter chases ay with ever more
+  slip (the real Stanford drive, 1.2 g on a dry track: vy 2.7 m/s off). With
+  ``mf_match_cornering_stiffness`` (default) ``B`` is set per axle
   so that the cornering stiffness ``B C D`` equals ``VehicleParams.cornering_stiffness_*``:
   the paper's numbers describe the paper's car, the vehicle file describes ours. ``False``
   uses the paper's ``B`` as is.
@@ -97,6 +102,10 @@ class AOUKFConfig:
     mf_reference_load: float = _positive(
         PAPER_REFERENCE_LOAD, "Tyre load at which the tyre has peak mf_d; D scales with the Eq.-3 load "
         "(default: mean tyre load of the paper's 1522 kg car) [N]")
+    mf_peak_from_road_friction: bool = setting(
+        True, "Peak D = the vehicle's road_friction x the Eq.-3 tyre load (false: the paper's mf_d, "
+        "scaled by the load; its mu of 0.97 caps the model's ay below what a car on a dry track reaches). "
+        "With the GA-BPNN correction the paper's tyre runs: the correction learnt its residuals")
     mf_match_cornering_stiffness: bool = setting(
         True, "Set B per axle so that B C D equals the vehicle's cornering_stiffness_front/rear "
         "(false: the paper's B for both axles)")

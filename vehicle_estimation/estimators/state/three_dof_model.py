@@ -60,12 +60,16 @@ class ThreeDofModel:
     @classmethod
     def from_params(cls, params: VehicleParams, config: Any) -> "ThreeDofModel":
         """The model of ``params`` with the tyre of ``config`` (an ``AOUKFConfig``: its ``mf_*``
-        fields, ``min_speed`` and ``max_substep``)."""
+        fields (peak ``D`` from ``params.road_friction`` or the paper's ``mf_d``), ``min_speed`` and ``max_substep``)."""
         m, a, b, g = params.mass, params.lf, params.lr, params.gravity
         fz_front = 0.5 * m * g * b / (a + b)      # Eq. 3, per tyre
         fz_rear = 0.5 * m * g * a / (a + b)
-        d_front = config.mf_d * fz_front / config.mf_reference_load
-        d_rear = config.mf_d * fz_rear / config.mf_reference_load
+        if config.mf_peak_from_road_friction:
+            peak_per_load = params.road_friction
+        else:
+            peak_per_load = config.mf_d / config.mf_reference_load
+        d_front = peak_per_load * fz_front
+        d_rear = peak_per_load * fz_rear
         if config.mf_match_cornering_stiffness:
             b_front = params.cornering_stiffness_front / (config.mf_c * d_front)
             b_rear = params.cornering_stiffness_rear / (config.mf_c * d_rear)
