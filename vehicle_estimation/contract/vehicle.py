@@ -82,6 +82,10 @@ class VehicleParams:
     track_front: float = setting(1.55, "Front track width b_F [m]", low=0.5, high=4.0)
     track_rear: float = setting(1.55, "Rear track width b_R [m]", low=0.5, high=4.0)
     cg_height: float = setting(0.519, "CoG height h [m]", low=0.1, high=4.0)
+    roll_lever: float = setting(
+        0.0, "Height of the IMU (on the sprung body) above the roll axis [m]: the body's roll "
+        "acceleration then adds -roll_lever x roll acceleration to the measured ay, which the state "
+        "node takes back out with the gyro's roll rate (0: not modelled)", low=0.0, high=4.0)
     yaw_inertia: float = setting(4607.47, "Yaw moment of inertia I_z [kg m^2]", low=100.0, high=2000000.0)
     wheel_radius: float = setting(0.325, "Effective rolling radius [m]", low=0.1, high=1.5)
     wheel_inertia: float = setting(4.0, "Rotational inertia of all wheels and driveshafts I_w [kg m^2]", low=0.0, high=1000.0)

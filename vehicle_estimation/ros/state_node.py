@@ -73,7 +73,7 @@ from vehicle_estimation.estimators.state.gabpnn import (
     load_correction,
 )
 from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
-from vehicle_estimation.estimators.state.core import ModelErrorSettings
+from vehicle_estimation.estimators.state.core import ModelErrorSettings, RollAccelerationTerm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -184,6 +184,8 @@ class StateNode(EstimatorNode):
         self._first_imu_t: float | None = None
         self._vx_measured = False     # by wheel speeds or vehicle/speed at the last filter step
         self._z_sum = np.zeros(3)
+        # the IMU above the roll axis feels the body's roll acceleration (vehicle.roll_lever)
+        self._roll_acceleration = RollAccelerationTerm(self.vehicle.roll_lever)
         self._roll_ay_variance = 0.0   # g^2 var(roll) of the last fusion attitude used [(m/s^2)^2]
         self._z_count = 0
         self._last_step_t = -math.inf
@@ -348,10 +350,12 @@ class StateNode(EstimatorNode):
         # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
         # measurement of the interval than any one sample.
         self._z_sum += (f[0], f[1] - self._roll_gravity(t), w[2])
+        self._roll_acceleration.add(w[0])
         self._z_count += 1
         if self.core.initialised and t - self._last_step_t < 1.0 / self.filter_rate - STAMP_TOLERANCE_S:
             return
         z = self._z_sum / self._z_count
+        z[1] += self._roll_acceleration.step(t)
         self._z_sum[:] = 0.0
         self._z_count = 0
         self._last_step_t = t
@@ -420,6 +424,7 @@ class StateNode(EstimatorNode):
         self._last_pub = -math.inf
         self._z_sum[:] = 0.0
         self._z_count = 0
+        self._roll_acceleration.reset()
         self._last_step_t = -math.inf
 
     def status_values(self) -> dict[str, str]:

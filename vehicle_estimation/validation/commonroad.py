@@ -111,7 +111,9 @@ def vehicle_params_mapping(p=None, *, wheel_radius: float | None = None) -> dict
     # |p_ky1| F_z0 per tyre; K_x = p_kx1 F_z.
     return {
         "name": VEHICLE_NAME, "mass": p.m, "curb_mass": p.m, "lf": p.a, "lr": p.b,
-        "track_front": p.T_f, "track_rear": p.T_r, "cg_height": p.h_cg, "yaw_inertia": p.I_z,
+        "track_front": p.T_f, "track_rear": p.T_r, "cg_height": p.h_cg,
+        # the IMU sits at the sprung mass's CG (h_s), the body rolls about the roll axis (h_ra*)
+        "roll_lever": p.h_s - 0.5 * (p.h_raf + p.h_rar), "yaw_inertia": p.I_z,
         "wheel_radius": p.R_w if wheel_radius is None else wheel_radius,
         "wheel_inertia": 4.0 * p.I_y_w,
         "frontal_area": 2.1, "drag_coefficient": 0.05, "air_density": 1.2, "rolling_resistance": 0.0,
@@ -142,6 +144,7 @@ def params_yaml(p=None) -> str:
         "name": "", "mass": f"{lib} m (total)", "curb_mass": "= mass",
         "lf": f"{lib} a (the model's CG-to-front-axle lever arm)", "lr": f"{lib} b",
         "track_front": f"{lib} T_f", "track_rear": f"{lib} T_r", "cg_height": f"{lib} h_cg",
+        "roll_lever": f"derived: {lib} h_s (the sprung CG, where the IMU is) - roll axis h_raf = h_rar",
         "yaw_inertia": f"{lib} I_z", "wheel_radius": f"{lib} R_w (see effective_rolling_radius)",
         "wheel_inertia": f"{lib} 4 x I_y_w", "frontal_area": "guess (real 320i ~2.1 m^2)",
         "drag_coefficient": "the model has NO aero drag; 0.05 is the lowest the nodes accept (30 N at 22 m/s)",

@@ -45,6 +45,7 @@ import yaml
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.registry import StateSettings, build_state_filter
+from vehicle_estimation.estimators.state.core import RollAccelerationTerm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.validation.stanford import baseline_linear_kf
@@ -151,7 +152,7 @@ def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:
 
 
 def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool,
-             roll: str = DEFAULT_ROLL) -> dict[str, np.ndarray]:
+             roll: str = DEFAULT_ROLL, roll_lever: float | None = None) -> dict[str, np.ndarray]:
     """Step one core through a drive as the state node would; (t, vx, vy, r, beta) per step.
 
     ``roll``: the state node's ``roll_compensation`` (on by default there, with the fusion's
@@ -169,6 +170,8 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
     speed = None
     first_imu_t = None
     z_sum, z_count, last_step = np.zeros(3), 0, -math.inf
+    lever = vehicle.roll_lever if roll_lever is None else roll_lever
+    roll_acc = RollAccelerationTerm(lever)
     out = []
     for k in range(imu["t"].size):
         t = float(imu["t"][k])
@@ -196,10 +199,12 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
             if t - first_imu_t < WHEEL_WAIT_S:
                 continue
         z_sum += (f[0], f[1] - g_y[k], w[2])
+        roll_acc.add(w[0])
         z_count += 1
         if core.initialised and t - last_step < 1.0 / FILTER_RATE_HZ - STAMP_TOLERANCE_S:
             continue
         z = z_sum / z_count
+        z[1] += roll_acc.step(t)
         z_sum[:] = 0.0
         z_count = 0
         last_step = t

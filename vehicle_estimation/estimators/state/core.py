@@ -37,6 +37,43 @@ from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 
 
+class RollAccelerationTerm:
+    """The lateral acceleration a body-fixed IMU feels from the body's roll acceleration.
+
+    An IMU ``h`` above the roll axis of a body rolling at ``p`` is accelerated by ``-h p'``
+    along its y axis on top of the acceleration of the roll axis, which is what the tyres
+    push (the roll-plane model: ``m (v_y' + v_x r) - m_s h phi'' = sum F_y``, Rajamani,
+    "Vehicle Dynamics and Control", Sec. 3.x). The filters' models have no roll, so the term
+    is added back to the measured ay: ``+h p'``, with ``p'`` the difference of the mean gyro
+    roll rates of consecutive filter steps over their spacing. ``h = 0``: the term is 0.
+    Feed every roll-rate sample with :meth:`add`; :meth:`step` at every filter step returns
+    the term for the step's mean ay [m/s^2]."""
+
+    def __init__(self, lever: float) -> None:
+        self.lever = float(lever)
+        self._sum, self._count = 0.0, 0
+        self._last: Optional[tuple[float, float]] = None     # (t, mean roll rate) of the last step
+
+    def add(self, roll_rate: float) -> None:
+        if self.lever > 0.0 and math.isfinite(roll_rate):
+            self._sum += roll_rate
+            self._count += 1
+
+    def step(self, t: float) -> float:
+        if self._count == 0:
+            self._last = None
+            return 0.0
+        mean = self._sum / self._count
+        self._sum, self._count = 0.0, 0
+        last, self._last = self._last, (t, mean)
+        if last is None or not t > last[0]:
+            return 0.0
+        return self.lever * (mean - last[1]) / (t - last[0])
+
+    def reset(self) -> None:
+        self._sum, self._count, self._last = 0.0, 0, None
+
+
 #: Index of the lateral specific force in every core's ``z = [ax, ay, r]``.
 AY_CHANNEL = 1
 
