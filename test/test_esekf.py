@@ -5,6 +5,7 @@ climbs and descends a 4 % grade, loses GNSS for 30 s (including a U-turn) and
 stops.  IMU 200 Hz (white noise + constant biases), GNSS 10 Hz (sigma 1.5 m
 horizontal, 3 m vertical), CAN speed 100 Hz quantised to 1 km/h.
 """
+import dataclasses
 import math
 import time
 
@@ -308,6 +309,22 @@ def test_alignment_on_a_slope_sign_conventions():
     assert q.shape == (4,) and q[3] > 0 and abs(np.linalg.norm(q) - 1) < 1e-12
     f, w = ekf.compensated_imu(*_static_imu(GRADE))
     np.testing.assert_allclose(w, -0.001)
+
+
+def test_a_correlated_speed_error_weighs_2_tau_over_the_spacing():
+    """speed_error_correlation_s: a CAN speed sample 10 ms after the last one counts as
+    2 tau / 10 ms = 200 times its variance; after a gap longer than 2 tau, as itself."""
+    variance = (1.0 / 3.6) ** 2 / 12.0                      # 1 km/h quantisation
+    correlated, _ = _aligned_filter()                       # the same filter until now
+    correlated.config = dataclasses.replace(correlated.config, speed_error_correlation_s=1.0)
+    white, t = _aligned_filter()
+    assert correlated.update_speed(t + 0.01, 0.3, variance)
+    assert white.update_speed(t + 0.01, 0.3, 200.0 * variance)
+    np.testing.assert_allclose(correlated.covariance, white.covariance, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(correlated.velocity_body, white.velocity_body, rtol=1e-12, atol=1e-15)
+    assert correlated.update_speed(t + 5.0, 0.0, variance)   # 5 s later: white again
+    assert white.update_speed(t + 5.0, 0.0, variance)
+    np.testing.assert_allclose(correlated.covariance, white.covariance, rtol=1e-12, atol=1e-15)
 
 
 def test_alignment_needs_standstill_and_hint_works():

@@ -80,6 +80,11 @@ class FusionConfig:
     gnss_sigma: tuple = setting((2.0, 2.0, 5.0), "GNSS position std E, N, U where a fix gives no covariance [m] "
                                 "(Table 3)", each=True, low=0.0, low_open=True)
     speed_sigma: float = setting(0.5, "CAN speed std [m/s] (Table 3)", low=0.0, low_open=True)
+    speed_error_correlation_s: float = setting(
+        0.0, "Correlation time of the CAN speed's error [s]: a speed quantised to 1 km/h is off by the "
+        "same amount for as long as the speed stays in one step, which as white noise at the bus rate "
+        "would count as known to mm/s; its variance is weighed 2 tau / (sample spacing) times "
+        "(0: white, Table 3)", low=0.0)
     nh_sigma_y: float = setting(5.0, "Lateral non-holonomic constraint std [m/s] (Table 3)",
                                 low=0.0, low_open=True)
     nh_sigma_z: float = setting(15.0, "Vertical non-holonomic constraint std [m/s] (Table 3)",

@@ -561,6 +561,10 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         r = self.config.speed_sigma ** 2 if variance is None else _float_or_nan(variance)
         if not self._admit("speed", t, math.isfinite(s) and math.isfinite(r) and r > 0, self._t_speed):
             return False
+        spacing = t - self._t_speed if self._t_speed is not None else math.inf
+        if self.config.speed_error_correlation_s > 0.0 and 0.0 < spacing < math.inf:
+            # an error that lasts tau weighs, as white noise at this rate, 2 tau / spacing times
+            r *= max(1.0, 2.0 * self.config.speed_error_correlation_s / spacing)
         self._t_speed = t
         self._last_speed = s
         if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
