@@ -76,7 +76,11 @@ def _start_every_node(files: list[Path]) -> None:
     rclpy.init(args=args, context=context)
     try:
         for node_class in (FusionNode, StateNode, SlopeNode, MassNode):
-            node_class(context=context).destroy_node()
+            node = node_class(context=context)
+            try:
+                node.check_parameter_overrides()      # no value in the files goes unread
+            finally:
+                node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
 

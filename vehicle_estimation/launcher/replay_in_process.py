@@ -69,6 +69,7 @@ class InProcessReplay:
                     self.nodes.append(node_class(
                         transport=self.bus, context=self.context, cli_args=cli_args,
                         use_global_arguments=False, enable_rosout=False, start_parameter_services=False))
+                    self.nodes[-1].check_parameter_overrides()
                 except ParameterError as exc:
                     raise ReplayError(f"{proc.spec.name}: invalid parameter: {exc}") from None
             self._record(list(RECORDED_TOPICS) + [("/diagnostics", DIAGNOSTICS_TYPE)], typestore)

@@ -65,7 +65,7 @@ from vehicle_estimation.ros.conversions import (
     MalformedMessage, chassis_reading, forward_speed_entry, odometry_entry, powertrain_reading)
 from vehicle_estimation.ros.persistence import StateFileError, load_state, save_state
 from vehicle_estimation.ros.runtime.node import EstimatorNode
-from vehicle_estimation.ros.runtime.parameters import ParameterError
+from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S
 from vehicle_estimation.ros.runtime.upstream import (
@@ -82,6 +82,9 @@ POWERTRAIN_MARGIN = 3.0
 
 
 class MassNode(EstimatorNode):
+    def parameter_of_another_method(self, name: str) -> bool:
+        return declared_by_a_method(MASS_METHODS, name)
+
     def __init__(self, **node_kwargs) -> None:
         super().__init__("mass", **node_kwargs)
         self.vehicle = self.declare_vehicle()

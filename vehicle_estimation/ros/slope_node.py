@@ -42,7 +42,7 @@ from vehicle_estimation.estimators.registry import SLOPE_METHODS
 from vehicle_estimation.estimators.slope.road_slope import GradeSample
 from vehicle_estimation.ros.conversions import forward_speed_entry, planar_velocity_entry
 from vehicle_estimation.ros.runtime.node import EstimatorNode
-from vehicle_estimation.ros.runtime.parameters import ParameterError
+from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S
 from vehicle_estimation.ros.runtime.upstream import (
@@ -58,6 +58,9 @@ PRIOR_VARIANCE = math.radians(10.0) ** 2
 
 
 class SlopeNode(EstimatorNode):
+    def parameter_of_another_method(self, name: str) -> bool:
+        return declared_by_a_method(SLOPE_METHODS, name)
+
     def __init__(self, **node_kwargs) -> None:
         super().__init__("road_slope", **node_kwargs)
         self.vehicle = self.declare_vehicle()

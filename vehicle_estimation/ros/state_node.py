@@ -78,7 +78,7 @@ from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
 from vehicle_estimation.ros.runtime.node import EstimatorNode
-from vehicle_estimation.ros.runtime.parameters import ParameterError
+from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_stamp
 from vehicle_estimation.ros.runtime.upstream import (
@@ -108,6 +108,9 @@ WHEEL_SPIN_MARGIN = 1.5
 
 
 class StateNode(EstimatorNode):
+    def parameter_of_another_method(self, name: str) -> bool:
+        return name == "aoukf_correction" or declared_by_a_method(STATE_FILTERS, name)
+
     def __init__(self, **node_kwargs) -> None:
         super().__init__("vehicle_state", **node_kwargs)
         self.vehicle = self.declare_vehicle()

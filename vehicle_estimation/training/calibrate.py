@@ -10,8 +10,8 @@ From one recorded drive with a known mass it estimates
   load as the vehicle reports it, 0-1 on ``vehicle/powertrain``; N_e in rpm) jointly with
   C_d A_0, C_r, I_e and I_w by the grid search of Eq. 48 over the ranges of Table 5,
 
-and writes a ROS 2 params file (``/**: ros__parameters:``) with the ``vehicle`` section of the
-base vehicle updated by the fitted values and the mass node's ``mass.torque_regression``, so that
+and writes a ROS 2 params file with the ``vehicle`` section of the base vehicle updated by the
+fitted values (under ``/**``) and the mass node's ``mass.torque_regression`` (under ``mass``), so that
 ``vehicle-estimation replay BAG --vehicle calibrated.yaml`` runs method ``rls`` on engine load and
 speed only (no torque signal), as the paper does.
 
@@ -342,8 +342,8 @@ def _rounded(x: float, digits: int = 6) -> float:
 
 
 def params_document(result: CalibrationResult, base: VehicleParams, mass: float) -> dict[str, Any]:
-    """The ``/**: ros__parameters:`` document: the ``vehicle`` section of ``base`` with the fitted
-    values, and the mass node's ``mass.torque_regression`` (Eq. 49 coefficients, N_e in rpm)."""
+    """The params document: under ``/**`` the ``vehicle`` section of ``base`` with the fitted
+    values, under the mass node ``mass.torque_regression`` (Eq. 49 coefficients, N_e in rpm)."""
     vehicle = result.vehicle(base, mass).as_mapping()
     for key, value in list(vehicle.items()):
         if isinstance(value, float):
@@ -351,7 +351,7 @@ def params_document(result: CalibrationResult, base: VehicleParams, mass: float)
     vehicle["gear_ratios"] = [_rounded(g, 5) for g in vehicle["gear_ratios"]]
     mass_section = {"torque_regression": [_rounded(w, 8) for w in result.torque_regression()],
                     "torque_regression_speed_unit": "rpm"}
-    return {"/**": {"ros__parameters": {"vehicle": vehicle, "mass": mass_section}}}
+    return {"/**": {"ros__parameters": {"vehicle": vehicle}}, "mass": {"ros__parameters": {"mass": mass_section}}}
 
 
 def summary(result: CalibrationResult, base: VehicleParams | None = None) -> str:

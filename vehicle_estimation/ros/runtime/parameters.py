@@ -28,6 +28,12 @@ class ParameterError(ValueError):
     """A parameter is invalid; the message names it. Raised at start-up only."""
 
 
+#: Parameters a params file's ``/**`` section may set for every node although only some nodes
+#: declare them (rclpy's own, the vehicle, the facts several nodes must agree on).
+SHARED_PARAMETERS = ("use_sim_time", "start_type_description_service", "gnss_aiding_timeout_s")
+SHARED_PREFIXES = ("vehicle.", "qos_overrides.")
+
+
 def descriptor(description: str, *, bounds: Bounds | None = None, integer: bool = False,
                read_only: bool = True, additional: str = "") -> ParameterDescriptor:
     """A read-only descriptor with a description and, given ``bounds``, an integer or float
@@ -157,6 +163,46 @@ class ParameterDeclarations:
             return self.declare_bool(field_name, default, doc)
         return self.declare_float(field_name, default, doc, bounds=field.metadata.get("bounds"))
 
+    def check_parameter_overrides(self) -> None:
+        """Raise :class:`ParameterError` for a value a params file (or ``-p``) gives this node
+        that it never declared: rclpy ignores it silently, so a misspelt or misplaced name
+        (``speed_error_correlation_s`` where the node reads ``fusion.speed_error_correlation_s``)
+        would leave the default running. Call once every parameter is declared."""
+        import difflib
+        overrides = getattr(self, "_parameter_overrides", {}) or {}
+        unknown = sorted(name for name in overrides
+                         if not self.has_parameter(name)  # type: ignore[attr-defined]
+                         and name not in SHARED_PARAMETERS and not name.startswith(SHARED_PREFIXES)
+                         and not self.parameter_of_another_method(name))
+        if unknown:
+            declared = list(self._parameters)  # type: ignore[attr-defined]
+            hints = []
+            for name in unknown:
+                close = difflib.get_close_matches(name, declared, n=1, cutoff=0.6) or \
+                    [d for d in declared if d.endswith("." + name)][:1]
+                hints.append(f"'{name}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+            raise ParameterError(f"parameter {', '.join(hints)}: not a parameter of node "
+                                 f"'{self.get_name()}'")  # type: ignore[attr-defined]
+
+    def parameter_of_another_method(self, name: str) -> bool:
+        """True for a parameter that a method this node did not select would declare (one
+        params file serves every method); nodes with methods override it."""
+        return False
+
     def declare_vehicle(self) -> VehicleParams:
         """Declare ``vehicle.*`` with the ranges and docs of :class:`VehicleParams` and build it."""
         return self.declare_config("vehicle", VehicleParams())
+
+
+def declared_by_a_method(methods: Any, name: str) -> bool:
+    """True when ``name`` is ``<config_prefix>.<field>`` of one of ``methods`` (a registry:
+    name -> object with ``config_prefix`` and ``config_type``). Loads only the configs whose
+    prefix matches (a method's config may import heavy modules)."""
+    prefix, _, field_name = name.partition(".")
+    for method in methods.values():
+        if method.config_prefix != prefix or not field_name:
+            continue
+        config = method.config_type()
+        if config is not None and any(f.name == field_name for f in dataclasses.fields(config)):
+            return True
+    return False

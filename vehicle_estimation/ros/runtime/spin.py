@@ -36,6 +36,9 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None) ->
     rclpy.init(args=args if args is not None else sys.argv)
     try:
         node = node_factory()
+        check = getattr(node, "check_parameter_overrides", None)
+        if check is not None:
+            check()
     except ParameterError as exc:
         print(f"[vehicle_estimation] invalid parameter: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
