@@ -21,12 +21,13 @@ from vehicle_estimation.ros import PIPELINE
 NODES = tuple(spec.name for spec in PIPELINE)
 
 #: Node parameter defaults, as the nodes declare them (a test checks them against the source):
-#: ``ros/slope_node.py`` (``method``), ``ros/state_node.py`` (``filter``,
+#: ``ros/fusion_node.py`` (``wheel_speed_fallback``), ``ros/slope_node.py`` (``method``),
+#: ``ros/state_node.py`` (``filter``,
 #: ``speed_fallback``), ``ros/mass_node.py`` (``method``, ``accel_source``,
 #: ``speed_source``, ``require_slope``). The ``fusion.*``, ``mass.*`` and ``vehicle.*``
 #: defaults come from their config dataclasses (:func:`_dataclass_defaults`).
 NODE_DEFAULTS: dict[str, dict[str, Any]] = {
-    "fusion": {},
+    "fusion": {"wheel_speed_fallback": True},
     "road_slope": {"method": "auto"},
     "vehicle_state": {"filter": "vbackf", "speed_fallback": True},
     "mass": {"method": "ffrls", "accel_source": "auto", "speed_source": "fusion", "require_slope": True},
@@ -153,10 +154,23 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
             lines.append("no GNSS: dead reckoning, odom = start pose with a free heading; "
                          "position covariance grows; accelerometer bias held at its prior, "
                          "which the grade's variance carries")
-        line, fusion_ok = _alignment(imu, speed_stats, params["fusion"], have_speed)
-        lines.append(line)
-        lines.append("CAN speed aids the filter (vehicle/speed)" if have_speed
-                     else "no vehicle/speed: only the vehicle constraints bound the velocity")
+        from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS
+        fusion = params["fusion"]
+        undriven = UNDRIVEN_WHEELS.get(str(fusion.get("vehicle.driven_axle", "front")), (0, 1, 2, 3))
+        wheel_speed = (not have_speed and _truthy(fusion.get("wheel_speed_fallback", True))
+                       and all(wheel[topics.WHEEL_JOINTS[i]] for i in undriven))
+        if wheel_speed:
+            window = float(fusion.get("fusion.in_motion_window_s", 5.0))
+            lines.append("aligns at standstill, or in motion after "
+                         f"{window:g} s, on the wheel speeds")
+            lines.append("no vehicle/speed: the undriven wheels' speed aids the filter "
+                         "(automatic fallback, wheel_speed_fallback)")
+            fusion_ok = True
+        else:
+            line, fusion_ok = _alignment(imu, speed_stats, fusion, have_speed)
+            lines.append(line)
+            lines.append("CAN speed aids the filter (vehicle/speed)" if have_speed
+                         else "no vehicle/speed: only the vehicle constraints bound the velocity")
     if not fusion_ok:
         empty += FUSION_OUTPUTS
     nodes["fusion"] = {"needs": "imu/data", "runs": fusion_ok, "lines": lines}

@@ -1,6 +1,10 @@
 """Fusion node: IMU + GNSS + CAN speed in the error-state EKF of paper 003 (Sec. 5, Alg. 1).
 
-Subscribes (sensor-data QoS): ``imu/data``, ``gnss/fix``, ``vehicle/speed``.
+Subscribes (sensor-data QoS): ``imu/data``, ``gnss/fix``, ``vehicle/speed`` and, for the
+wheel-speed fallback, ``vehicle/joint_states``: while ``vehicle/speed`` is missing or stale
+(``fusion.speed_timeout_s``), the mean speed of the undriven wheels times
+``vehicle.wheel_radius`` is the speed the filter aligns and navigates with, and
+``/diagnostics`` says so (``speed source``).
 Publishes: ``estimation/odometry`` (pose in ENU ``odom``, twist in ``base_link``),
 ``estimation/imu`` (bias-compensated IMU with the estimated orientation, at ``imu_rate_hz``) and
 ``estimation/fusion/road_grade`` (pitch-derived grade, stamped companion: x = grade [rad,
@@ -20,19 +24,23 @@ import math
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import Imu, NavSatFix, NavSatStatus
+from sensor_msgs.msg import Imu, JointState, NavSatFix, NavSatStatus
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
 from vehicle_estimation.estimators.common.rotations import rotmat_to_quat
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF
+from vehicle_estimation.ros.conversions import MAX_SPEED, MalformedMessage, chassis_reading
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_stamp
 from vehicle_estimation.ros.runtime.upstream import companion
 
 FUSION_GRADE = topics.FUSION_GRADE
+#: Floor of the wheel-speed fallback's std (wheel-speed resolution at a crawl) [m/s].
+WHEEL_SPEED_FLOOR_STD = 0.05
+SPEED_FROM_CAN, SPEED_FROM_WHEELS = "vehicle/speed", "wheel speeds (no vehicle/speed)"
 FREE_HEADING = ("gnss/fix: no heading from GNSS yet, so free heading: odom = the pose at alignment, "
                 "position dead-reckoned")
 
@@ -72,6 +80,19 @@ class FusionNode(EstimatorNode):
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
         self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
         self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
+        self.wheel_speed_fallback = self.declare_bool(
+            "wheel_speed_fallback", True,
+            "While vehicle/speed is missing or older than fusion.speed_timeout_s, use the undriven "
+            "wheels' mean speed x vehicle.wheel_radius as the speed (vehicle/joint_states)")
+        self.vehicle = self.declare_vehicle()
+        self.wheel_speed_std = self.declare_float(
+            "wheel_speed_std", 0.01, "Relative std of the wheel-speed fallback's speed (the rolling "
+            "radius's uncertainty: tyre wear, pressure, load) [-]", 0.0, 0.2)
+        self._can_speed_t = -math.inf
+        self._wheel_speed_t = -math.inf
+        self._imu_t = -math.inf
+        if self.wheel_speed_fallback:
+            self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
 
     # -------------------------------------------------------------- inputs
     def on_imu(self, t: float, msg: Imu) -> None:
@@ -79,6 +100,7 @@ class FusionNode(EstimatorNode):
         if imu is None:
             return
         f, w = imu
+        self._imu_t = t
         self._last_angular_rate = w
         if not self.ekf.process_imu(t, f, w):
             self.reject("imu:out_of_order")
@@ -130,8 +152,29 @@ class FusionNode(EstimatorNode):
         if reading is None:
             return
         v, var = reading
+        self._can_speed_t = t
         if not self.ekf.update_speed(t, v, None if math.isnan(var) else var):
             self.reject("speed:rejected_by_filter")
+
+    def on_joint_states(self, t: float, msg: JointState) -> None:
+        """The wheel-speed fallback: only while vehicle/speed is missing or stale."""
+        if t - self._can_speed_t <= self.config.speed_timeout_s:
+            return
+        try:
+            wheels = chassis_reading(msg).wheel_speeds[list(self.vehicle.undriven_wheels)]
+        except MalformedMessage:
+            self.reject("joint_states:malformed")
+            return
+        if not np.isfinite(wheels).all():
+            return                  # no wheel speeds in this message (steering only, say)
+        v = float(np.mean(wheels)) * self.vehicle.wheel_radius
+        if abs(v) > MAX_SPEED:
+            self.reject("joint_states:implausible")
+            return
+        self._wheel_speed_t = t
+        variance = (self.wheel_speed_std * v) ** 2 + WHEEL_SPEED_FLOOR_STD ** 2
+        if not self.ekf.update_speed(t, v, variance):
+            self.reject("joint_states:speed_rejected_by_filter")
 
     # -------------------------------------------------------------- outputs
     def publish_imu(self, t: float, raw: Imu, f: np.ndarray, w: np.ndarray) -> None:
@@ -209,12 +252,28 @@ class FusionNode(EstimatorNode):
         self._last_odom_t = -math.inf
         self._last_bias_t = -math.inf
         self._last_imu_pub_t = -math.inf
+        self._can_speed_t = -math.inf
+        self._wheel_speed_t = -math.inf
+        self._imu_t = -math.inf
+
+    @property
+    def speed_source(self) -> str:
+        """Which speed the filter navigates with now (the IMU's stamp is now)."""
+        timeout = self.config.speed_timeout_s
+        if self._imu_t - self._can_speed_t <= timeout:
+            return SPEED_FROM_CAN
+        if self._imu_t - self._wheel_speed_t <= timeout:
+            return SPEED_FROM_WHEELS
+        if math.isfinite(max(self._can_speed_t, self._wheel_speed_t)):
+            return "none now (the velocity is the IMU's integral)"
+        return "none yet"
 
     def status_values(self) -> dict[str, str]:
         ekf = self.ekf
         values = {"filter status": ekf.status, "initialized": str(ekf.initialized),
                   "heading source": "GNSS motion" if ekf.initialized else "free (no GNSS heading yet)",
-                  "position source": "GNSS" if self.origin is not None else "dead reckoning (no GNSS fix)"}
+                  "position source": "GNSS" if self.origin is not None else "dead reckoning (no GNSS fix)",
+                  "speed source": self.speed_source}
         if ekf.navigating:
             values.update({
                 "road grade [deg]": f"{math.degrees(ekf.road_grade):.3f}",
