@@ -154,6 +154,12 @@ class StateNode(EstimatorNode):
         self.speed_fallback_std = self.declare_float(
             "speed_fallback_std", 0.3,
             "Std of vehicle/speed when its message carries no variance [m/s]", 0.001, 10.0)
+        self.speed_error_correlation_s = self.declare_float(
+            "speed_error_correlation_s", 0.0,
+            "Correlation time of vehicle/speed's error [s] (a speed quantised to 1 km/h is off by the "
+            "same amount while it stays in one step): its variance is weighed 2 tau / (sample "
+            "spacing) times; 0 = white", 0.0, 60.0)
+        self._last_speed_used_t = -math.inf
         self.settings = StateSettings(
             tuple(self.p0_diag), tuple(self.q_diag), tuple(self.r_diag), self.initial_vx, self.init_from_wheels,
             **{name: self.declare_setting(VehicleStateConfig, name) for name in (
@@ -187,6 +193,7 @@ class StateNode(EstimatorNode):
         self._first_imu_t: float | None = None
         self._vx_measured = False     # by wheel speeds or vehicle/speed at the last filter step
         self._z_sum = np.zeros(3)
+        self._imu_noise_sum = np.zeros(3)   # the IMU's stated [ax, ay, r] variances, summed
         # the IMU above the roll axis feels the body's roll acceleration (vehicle.roll_lever)
         self._roll_acceleration = RollAccelerationTerm(self.vehicle.roll_lever)
         self._roll_ay_variance = 0.0   # g^2 var(roll) of the last fusion attitude used [(m/s^2)^2]
@@ -291,8 +298,14 @@ class StateNode(EstimatorNode):
         fresh = t - self.speed_t <= self.stale_input_s
         self.vx_source = VX_FROM_SPEED if fresh else VX_DEAD_RECKONED
         self.set_missing("wheel speeds and vehicle/speed", math.isfinite(self.speed_t) and not fresh)
-        if fresh and self.speed is not None and self.core.update_speed(self.speed[1], self.speed[2]):
-            self.speed = None
+        if fresh and self.speed is not None:
+            spacing = self.speed[0] - self._last_speed_used_t
+            variance = self.speed[2]
+            if self.speed_error_correlation_s > 0.0 and 0.0 < spacing < math.inf:
+                variance *= max(1.0, 2.0 * self.speed_error_correlation_s / spacing)
+            if self.core.update_speed(self.speed[1], variance):
+                self._last_speed_used_t = self.speed[0]
+                self.speed = None
 
     def _roll_gravity(self, t: float) -> float:
         """The gravity on the body y axis at ``t`` [m/s^2] (0 without a fresh fusion attitude)."""
@@ -352,20 +365,28 @@ class StateNode(EstimatorNode):
         # The filter steps at filter_rate_hz on the mean of the IMU samples since its last step:
         # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
         # measurement of the interval than any one sample.
+        if self.core.learns_measurement_noise:
+            self._imu_noise_sum += _stated_imu_variances(msg)
         self._z_sum += (f[0], f[1] - self._roll_gravity(t), w[2])
         self._roll_acceleration.add(w[0])
         self._z_count += 1
         if self.core.initialised and t - self._last_step_t < 1.0 / self.filter_rate - STAMP_TOLERANCE_S:
             return
-        z = self._z_sum / self._z_count
+        count = self._z_count
+        z = self._z_sum / count
         z[1] += self._roll_acceleration.step(t)
         self._z_sum[:] = 0.0
         self._z_count = 0
         self._last_step_t = t
         reinitialisations = self.core.reinitialisations
         # The roll's error is the same over many filter steps: as white noise it weighs 2 tau/dt.
-        self.core.set_lateral_acceleration_noise(
-            self._roll_ay_variance * 2.0 * self.roll_error_correlation_s * self.filter_rate)
+        roll_noise = self._roll_ay_variance * 2.0 * self.roll_error_correlation_s * self.filter_rate
+        # A filter that learns R from its residuals learns too little where its model is
+        # nearly exact (a straight road: it cannot tell the yaw rate's noise from its own
+        # process noise); the IMU's stated noise of the step's mean is a floor it adds.
+        floor = self._imu_noise_sum / (count * count)
+        self._imu_noise_sum[:] = 0.0
+        self.core.set_known_noise(ax=floor[0], ay=floor[1] + roll_noise, r=floor[2])
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
         if self.core.reinitialisations != reinitialisations:
@@ -426,7 +447,9 @@ class StateNode(EstimatorNode):
         self._vx_measured = False
         self._last_pub = -math.inf
         self._z_sum[:] = 0.0
+        self._imu_noise_sum[:] = 0.0
         self._z_count = 0
+        self._last_speed_used_t = -math.inf
         self._roll_acceleration.reset()
         self._last_step_t = -math.inf
 
@@ -439,6 +462,17 @@ class StateNode(EstimatorNode):
         extra["roll compensation sigma [m/s^2]"] = f"{math.sqrt(self._roll_ay_variance):.3f}"
         return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
+
+
+def _stated_imu_variances(msg: Imu) -> np.ndarray:
+    """The variances of ax, ay and the yaw rate an IMU message states (REP-145: a covariance
+    of zeros, or -1 first, is unknown: 0)."""
+    a, w = msg.linear_acceleration_covariance, msg.angular_velocity_covariance
+    if a[0] < 0.0:
+        a = (0.0,) * 9
+    if w[0] < 0.0:
+        w = (0.0,) * 9
+    return np.array([max(a[0], 0.0), max(a[4], 0.0), max(w[8], 0.0)])
 
 
 def main(args: list[str] | None = None) -> int:

@@ -132,21 +132,32 @@ class VehicleStateCore(StepGuard, ABC):
         #: The per-step validity check by a compiled kernel (set with the filter's kernels).
         self.compiled_checks = False
         self._factor_work = np.empty_like(P0, dtype=float)
-        self._known_ay_noise: Optional[np.ndarray] = None
+        self._known_noise: Optional[np.ndarray] = None
+
+    #: True for a filter that learns its measurement noise (the VB-ACKF): the owner then gives
+    #: it the sensor's stated noise as a floor (:meth:`set_known_noise`), which a filter with a
+    #: fixed ``R`` already has.
+    learns_measurement_noise = False
 
     def set_lateral_acceleration_noise(self, variance: float) -> None:
         """A known variance of the measured ay [(m/s^2)^2] on top of the filter's ``R`` (or its
         learnt one) from the next update on; 0 removes it. The owner sets it from an input's own
         uncertainty: the node takes g sin(roll) out of ay with the fusion's roll, whose error
         enters the corrected ay one for one."""
-        variance = float(variance)
-        if not (math.isfinite(variance) and variance > 0.0):
+        self.set_known_noise(ay=variance)
+
+    def set_known_noise(self, ax: float = 0.0, ay: float = 0.0, r: float = 0.0) -> None:
+        """Known variances of the step's ``z = [ax, ay, r]`` on top of the filter's (learnt)
+        ``R`` from the next update on (a non-finite or non-positive one counts as 0)."""
+        values = [float(v) if math.isfinite(float(v)) and float(v) > 0.0 else 0.0 for v in (ax, ay, r)]
+        if not any(values):
             self._filter.known_noise = None
             return
-        if self._known_ay_noise is None:   # one matrix, rewritten at every step
-            self._known_ay_noise = np.zeros((self._filter.m, self._filter.m))
-        self._known_ay_noise[AY_CHANNEL, AY_CHANNEL] = variance
-        self._filter.known_noise = self._known_ay_noise
+        if self._known_noise is None:   # one matrix, rewritten at every step
+            self._known_noise = np.zeros((self._filter.m, self._filter.m))
+        for channel, value in enumerate(values):
+            self._known_noise[channel, channel] = value
+        self._filter.known_noise = self._known_noise
 
     # -- helpers -------------------------------------------------------------------------
     def _x0(self, vx0: Optional[float]) -> np.ndarray:

@@ -482,6 +482,7 @@ class VehicleStateVBACKF(VehicleStateCKF):
     """
 
     _filter: VariationalBayesCKF   # built by _make_filter
+    learns_measurement_noise = True
 
     def __init__(self, params: VehicleParams, config: Optional[VehicleStateConfig] = None,
                  vb: Optional[VBConfig] = None):
