@@ -87,7 +87,7 @@ def _state_drive(core_class, params, config, compiled_on, steps=400, wheels=True
         if k == 150:
             z[1] = np.nan                      # a rejected sample on both paths
         if known_ay is not None:
-            core.set_lateral_acceleration_noise(known_ay(k))
+            core.set_known_noise(ay=known_ay(k))
         core.step(t, u, z)
         out.append(np.concatenate([core.x, core.P.ravel()]))
     return core, np.array(out)
@@ -300,11 +300,11 @@ def test_known_lateral_noise_compiled_gives_the_numpy_estimates_and_weighs_ay_le
     gains = []
     for variance in (0.0, 1e4):
         core = core_class(SEDAN)
-        core.set_lateral_acceleration_noise(variance)
+        core.set_known_noise(ay=variance)
         x_true = np.array([25.0, 0.4, 0.15, 0.8, 3.0])
         core.step(10.0, _inputs(10.0, x_true, SEDAN, True, False), np.array([1.0, 3.0, 0.15]))
         core.step(10.01, _inputs(10.01, x_true, SEDAN, True, False), np.array([1.1, 2.9, 0.16]))
         gains.append(np.abs(core.filter.last_gain[:, 1]).max())
     assert gains[1] < 0.01 * gains[0]
-    core.set_lateral_acceleration_noise(0.0)
+    core.set_known_noise(ay=0.0)
     assert core.filter.known_noise is None

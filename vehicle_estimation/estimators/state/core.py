@@ -139,16 +139,12 @@ class VehicleStateCore(StepGuard, ABC):
     #: fixed ``R`` already has.
     learns_measurement_noise = False
 
-    def set_lateral_acceleration_noise(self, variance: float) -> None:
-        """A known variance of the measured ay [(m/s^2)^2] on top of the filter's ``R`` (or its
-        learnt one) from the next update on; 0 removes it. The owner sets it from an input's own
-        uncertainty: the node takes g sin(roll) out of ay with the fusion's roll, whose error
-        enters the corrected ay one for one."""
-        self.set_known_noise(ay=variance)
-
     def set_known_noise(self, ax: float = 0.0, ay: float = 0.0, r: float = 0.0) -> None:
         """Known variances of the step's ``z = [ax, ay, r]`` on top of the filter's (learnt)
-        ``R`` from the next update on (a non-finite or non-positive one counts as 0)."""
+        ``R`` from the next update on (a non-finite or non-positive one counts as 0; all 0
+        removes them). The owner sets them from its inputs' own uncertainty: the fusion roll's
+        error enters the roll-compensated ay one for one, and the IMU's stated noise floors
+        what a filter that learns ``R`` learns."""
         values = [float(v) if math.isfinite(float(v)) and float(v) > 0.0 else 0.0 for v in (ax, ay, r)]
         if not any(values):
             self._filter.known_noise = None
