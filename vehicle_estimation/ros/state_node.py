@@ -60,6 +60,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
 from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.noise import white_equivalent_variance
 from vehicle_estimation.estimators.interfaces import StateEstimator
 from vehicle_estimation.estimators.registry import (
     STATE_FILTERS,
@@ -299,10 +300,8 @@ class StateNode(EstimatorNode):
         self.vx_source = VX_FROM_SPEED if fresh else VX_DEAD_RECKONED
         self.set_missing("wheel speeds and vehicle/speed", math.isfinite(self.speed_t) and not fresh)
         if fresh and self.speed is not None:
-            spacing = self.speed[0] - self._last_speed_used_t
-            variance = self.speed[2]
-            if self.speed_error_correlation_s > 0.0 and 0.0 < spacing < math.inf:
-                variance *= max(1.0, 2.0 * self.speed_error_correlation_s / spacing)
+            variance = white_equivalent_variance(self.speed[2], self.speed_error_correlation_s,
+                                                 self.speed[0] - self._last_speed_used_t)
             if self.core.update_speed(self.speed[1], variance):
                 self._last_speed_used_t = self.speed[0]
                 self.speed = None

@@ -62,6 +62,7 @@ import math
 import numpy as np
 
 from vehicle_estimation.estimators.common import compiled
+from vehicle_estimation.estimators.common.noise import white_equivalent_variance
 from vehicle_estimation.estimators.common.rotations import (quat_from_euler, quat_from_rotvec, quat_multiply,
                                                             quat_to_rotmat, skew)
 from vehicle_estimation.estimators.fusion.config import FusionConfig
@@ -562,9 +563,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         if not self._admit("speed", t, math.isfinite(s) and math.isfinite(r) and r > 0, self._t_speed):
             return False
         spacing = t - self._t_speed if self._t_speed is not None else math.inf
-        if self.config.speed_error_correlation_s > 0.0 and 0.0 < spacing < math.inf:
-            # an error that lasts tau weighs, as white noise at this rate, 2 tau / spacing times
-            r *= max(1.0, 2.0 * self.config.speed_error_correlation_s / spacing)
+        r = white_equivalent_variance(r, self.config.speed_error_correlation_s, spacing)
         self._t_speed = t
         self._last_speed = s
         if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
