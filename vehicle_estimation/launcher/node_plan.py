@@ -14,7 +14,7 @@ import numpy as np
 import yaml
 
 from vehicle_estimation.contract import topics
-from vehicle_estimation.contract.vehicle import merge_ros_parameters
+from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS, merge_ros_parameters
 from vehicle_estimation.io.bag_survey import InspectError, TopicStats
 from vehicle_estimation.ros import PIPELINE
 
@@ -154,7 +154,6 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
             lines.append("no GNSS: dead reckoning, odom = start pose with a free heading; "
                          "position covariance grows; accelerometer bias held at its prior, "
                          "which the grade's variance carries")
-        from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS
         fusion = params["fusion"]
         undriven = UNDRIVEN_WHEELS.get(str(fusion.get("vehicle.driven_axle", "front")), (0, 1, 2, 3))
         wheel_speed = (not have_speed and _truthy(fusion.get("wheel_speed_fallback", True))

@@ -85,6 +85,7 @@ class FusionNode(EstimatorNode):
             "While vehicle/speed is missing or older than fusion.speed_timeout_s, use the undriven "
             "wheels' mean speed x vehicle.wheel_radius as the speed (vehicle/joint_states)")
         self.vehicle = self.declare_vehicle()
+        self._undriven_wheels = list(self.vehicle.undriven_wheels)
         self.wheel_speed_std = self.declare_float(
             "wheel_speed_std", 0.01, "Relative std of the wheel-speed fallback's speed (the rolling "
             "radius's uncertainty: tyre wear, pressure, load) [-]", 0.0, 0.2)
@@ -161,7 +162,7 @@ class FusionNode(EstimatorNode):
         if t - self._can_speed_t <= self.config.speed_timeout_s:
             return
         try:
-            wheels = chassis_reading(msg).wheel_speeds[list(self.vehicle.undriven_wheels)]
+            wheels = chassis_reading(msg).wheel_speeds[self._undriven_wheels]
         except MalformedMessage:
             self.reject("joint_states:malformed")
             return
