@@ -710,7 +710,7 @@ def test_gnss_outage_of_60_s_through_the_fusion_node():
     node's subscriptions (CDR bytes, stamp ordering, conversions; no DDS): the fixes are
     rejected as no_fix and the filter dead-reckons on IMU, CAN speed and the vehicle
     constraints. Errors at the end of the outage are printed and bounded."""
-    from rclpy.serialization import serialize_message
+    from rclpy.serialization import deserialize_message, serialize_message
 
     from vehicle_estimation.estimators.common.rotations import euler_from_quat
     from vehicle_estimation.sim.profiles import SpeedProfile
@@ -733,7 +733,8 @@ def test_gnss_outage_of_60_s_through_the_fusion_node():
     try:
         subs = node._subscriptions_by_topic
         odom: list[Odometry] = []
-        node.pub_odom.publish = odom.append            # capture instead of DDS
+        # capture instead of DDS (the node publishes its serialized bytes)
+        node.pub_odom.publish = lambda data: odom.append(deserialize_message(data, Odometry))
         s = sim.sensors
         items = []
         for i, t in enumerate(s["imu"]["t"]):

@@ -83,16 +83,19 @@ class InProcessReplay:
             connection = (self.writer.add_connection(name, type_name, typestore=typestore)
                           if self.writer is not None else None)
 
-            def write(data: bytes, name: str = name, connection: Any = connection, type_name: str = type_name) -> None:
+            def write(message: tuple[bytes, bool], name: str = name, connection: Any = connection,
+                      type_name: str = type_name) -> None:
                 self.recorded[name] += 1
                 if connection is not None:
-                    # rclpy's serializer leaves the CDR alignment padding as it finds it in
-                    # memory, where a DDS writer zeroes it: the same values, other bytes.
-                    # Written again by rosbags, the padding is zero as in the DDS recording.
-                    canonical = typestore.serialize_cdr(typestore.deserialize_cdr(data, type_name), type_name)
-                    self.writer.write(connection, self.bus.now_ns, bytes(canonical))
+                    data, canonical = message
+                    if not canonical:
+                        # rclpy's serializer leaves the CDR alignment padding as it finds it in
+                        # memory, where a DDS writer zeroes it: the same values, other bytes.
+                        # Written again by rosbags, the padding is zero as in the DDS recording.
+                        data = bytes(typestore.serialize_cdr(typestore.deserialize_cdr(data, type_name), type_name))
+                    self.writer.write(connection, self.bus.now_ns, data)
 
-            self.bus.create_subscription(name, write, raw=True)
+            self.bus.create_recording(name, write)
 
     # ------------------------------------------------------------ the replay's engine interface
     def add_input(self, topic: str, type_name: str) -> str:

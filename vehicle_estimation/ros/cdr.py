@@ -1,4 +1,6 @@
-"""Fast reading of the high-rate messages straight from their serialized CDR bytes.
+"""The nodes' messages read from and written to their serialized CDR bytes, without rclpy.
+
+Reading: the high-rate inputs.
 
 rclpy turns every received message into Python message objects: a sensor_msgs/Imu is an Imu,
 a Header, a Time, a Quaternion and three Vector3, each built by generated ``__init__`` code
@@ -13,12 +15,15 @@ endian), then the fields in order, each primitive aligned to its size relative t
 the payload; a string is a uint32 length (with the NUL) and its bytes, a sequence a uint32
 count and its elements. Anything else (big-endian CDR, a truncated or inconsistent buffer)
 is handed to rclpy's own deserializer, so a view is only ever an optimisation.
+
+Writing: the nodes' outputs, packed in one go (:class:`StampedLayout`, section below).
 """
 
 from __future__ import annotations
 
+import functools
 import struct
-from typing import Any, Callable
+from typing import Any, Callable, Iterable, TypeVar
 
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
@@ -69,7 +74,7 @@ class Quaternion:
 class ImuView:
     """sensor_msgs/Imu."""
     __slots__ = ("header", "orientation", "orientation_covariance", "angular_velocity",
-                 "angular_velocity_covariance", "linear_acceleration", "linear_acceleration_covariance")
+                 "angular_velocity_covariance", "linear_acceleration", "linear_acceleration_covariance", "memo")
 
 
 class Twist:
@@ -88,7 +93,7 @@ class TwistWithCovariance:
 
 class TwistWithCovarianceStampedView:
     """geometry_msgs/TwistWithCovarianceStamped."""
-    __slots__ = ("header", "twist")
+    __slots__ = ("header", "twist", "memo")
 
 
 class Pose:
@@ -101,17 +106,17 @@ class PoseWithCovariance:
 
 class OdometryView:
     """nav_msgs/Odometry."""
-    __slots__ = ("header", "child_frame_id", "pose", "twist")
+    __slots__ = ("header", "child_frame_id", "pose", "twist", "memo")
 
 
 class Vector3StampedView:
     """geometry_msgs/Vector3Stamped."""
-    __slots__ = ("header", "vector")
+    __slots__ = ("header", "vector", "memo")
 
 
 class JointStateView:
     """sensor_msgs/JointState."""
-    __slots__ = ("header", "name", "position", "velocity", "effort")
+    __slots__ = ("header", "name", "position", "velocity", "effort", "memo")
 
 
 def _check(data: bytes) -> None:
@@ -233,20 +238,122 @@ DECODERS: dict[Any, Callable[[bytes], Any]] = {
 }
 
 
+_READERS: dict[Any, Callable[[bytes], Any]] = {}
+_VIEWS = (ImuView, TwistWithCovarianceStampedView, OdometryView, Vector3StampedView, JointStateView)
+T = TypeVar("T")
+
+
+def per_view(read: Callable[[Any], T]) -> Callable[[Any], T]:
+    """``read`` remembering on a view what it returned for it: the in-process bus hands every
+    node the same view of a message (:func:`raw_reader`), so what the nodes read from it is
+    computed once (the result must not be changed by its users). A message object is read
+    every time: its owner may change it between calls."""
+
+    @functools.wraps(read)
+    def cached(msg: Any) -> T:
+        if type(msg) not in _VIEWS:
+            return read(msg)
+        try:
+            memo = msg.memo
+        except AttributeError:
+            memo = msg.memo = {}
+        try:
+            return memo[cached]
+        except KeyError:
+            value = memo[cached] = read(msg)
+            return value
+
+    return cached
+
+
 def raw_reader(msg_type: Any) -> Callable[[bytes], Any] | None:
     """``bytes -> message or view`` for ``msg_type`` (None: no fast path, subscribe normally).
 
     Falls back to rclpy's deserializer when the fast path cannot read the bytes, so the
-    result is always the message's content.
+    result is always the message's content. One reader per type, which remembers the last
+    bytes object it read: the in-process bus hands every subscriber the same bytes, so a
+    message is decoded once for all nodes of the process (handlers never write to a view).
     """
-    decoder = DECODERS.get(msg_type)
-    if decoder is None:
-        return None
+    reader = _READERS.get(msg_type)
+    if reader is not None or msg_type not in DECODERS:
+        return reader
+    decoder = DECODERS[msg_type]
+    last: list[tuple[Any, Any]] = [(None, None)]
 
     def read(data: bytes) -> Any:
+        seen, view = last[0]
+        if data is seen:
+            return view
         try:
-            return decoder(data)
+            view = decoder(data)
         except (DecodeError, struct.error, IndexError, TypeError):
-            return deserialize_message(data, msg_type)
+            view = deserialize_message(data, msg_type)
+        last[0] = (data, view)      # one assignment: a reader shared by threads stays consistent
+        return view
 
+    _READERS[msg_type] = read
     return read
+
+# ---------------------------------------------------------------------------------- writing
+# The nodes' estimates written straight to serialized CDR bytes.
+#
+# Building a nav_msgs/Odometry in rclpy creates a dozen Python message objects and converts two
+# 36-element covariance lists to arrays field by field; rclpy then serializes the lot again. The
+# nodes' outputs are fixed layouts, a header and a run of float64, so each publisher packs its
+# message with one ``struct.pack`` instead (rclpy publishes ``bytes`` as a serialized message,
+# and the in-process bus hands them on as they are).
+#
+# The bytes are the canonical ROS 2 wire form (what ``rosbags`` and a DDS writer produce: CDR
+# little endian, alignment padding zero), so a recording is the same whichever transport carried
+# the message, and ``test_cdr`` holds every layout to rosbags' serializer byte for byte.
+# Layout: the 4-byte encapsulation header ``00 01 00 00``, then the fields in order, each
+# primitive aligned to its size relative to the end of that header; a string is a uint32 length
+# (counting its NUL), its bytes and the NUL.
+
+_ENCAPSULATION = b"\x00\x01\x00\x00"
+_FLOAT64 = struct.Struct("<d")
+
+
+def _string_bytes(text: str, pos: int) -> tuple[bytes, int]:
+    """``text`` as a CDR string starting at payload offset ``pos`` (4-aligned), and the end."""
+    pad = -pos % 4
+    raw = text.encode() + b"\x00"
+    return b"\x00" * pad + _U32.pack(len(raw)) + raw, pos + pad + 4 + len(raw)
+
+
+class StampedLayout:
+    """A message that is a std_msgs/Header, optionally a second frame string, and ``doubles``
+    float64 values in field order (nested structs and fixed arrays flatten to that):
+
+    ====================================  =======  ==============================================
+    message                               doubles  order
+    ====================================  =======  ==============================================
+    geometry_msgs/Vector3Stamped          3        x y z
+    geometry_msgs/TwistWithCovarianceStamped 42    linear, angular, covariance (36)
+    sensor_msgs/Imu                       37       orientation (4), its covariance (9), angular
+                                                   velocity (3), its covariance, linear
+                                                   acceleration (3), its covariance
+    nav_msgs/Odometry (``child_frame_id``) 85      position (3), orientation (4), pose covariance
+                                                   (36), linear, angular, twist covariance (36)
+    ====================================  =======  ==============================================
+    """
+
+    def __init__(self, frame_id: str, doubles: int, child_frame_id: str | None = None) -> None:
+        frames, pos = _string_bytes(frame_id, _STAMP.size)
+        if child_frame_id is not None:
+            child, pos = _string_bytes(child_frame_id, pos)
+            frames += child
+        frames += b"\x00" * (-pos % 8)
+        self._frames = frames
+        self._values = struct.Struct(f"<{doubles}d")
+        self.doubles = doubles
+
+    def pack(self, stamp_ns: int, values: Iterable[float]) -> bytes:
+        """The message stamped ``stamp_ns`` (integer nanoseconds) carrying ``values``."""
+        sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+        return _ENCAPSULATION + _STAMP.pack(sec, nanosec) + self._frames + self._values.pack(*values)
+
+
+def float64_bytes(value: float) -> bytes:
+    """A std_msgs/Float64."""
+    return _ENCAPSULATION + _FLOAT64.pack(value)

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.common.rotations import gravity_on_body_y, gravity_on_body_y_variance, yaw_of_quat
+from vehicle_estimation.ros.cdr import per_view
 from vehicle_estimation.ros.stamps import stamp_to_sec
 
 NAN = float("nan")
@@ -24,11 +25,13 @@ class MalformedMessage(ValueError):
     """A message that cannot be read at all (e.g. JointState arrays of the wrong length)."""
 
 
-@dataclass(frozen=True)
-class JointReading:
+class JointReading(NamedTuple):
     position: float = NAN
     velocity: float = NAN
     effort: float = NAN
+
+
+_NO_JOINT = JointReading()
 
 
 def joint_readings(msg: Any) -> dict[str, JointReading]:
@@ -74,15 +77,16 @@ class ChassisReading:
         return float(np.sum(finite)) if finite.size else NAN
 
 
+@per_view
 def chassis_reading(msg: Any) -> ChassisReading:
+    """The chassis signals of a ``vehicle/joint_states`` message (arrays read-only: one reading
+    of a view is shared by the nodes of a process)."""
     joints = joint_readings(msg)
-    wheels = [joints.get(name, JointReading()) for name in topics.WHEEL_JOINTS]
-    steering = joints.get(topics.STEERING_JOINT, JointReading())
-    return ChassisReading(
-        wheel_speeds=np.array([w.velocity for w in wheels]),
-        brake_torques=np.array([w.effort for w in wheels]),
-        steering_wheel_angle=steering.position,
-    )
+    wheels = [joints.get(name, _NO_JOINT) for name in topics.WHEEL_JOINTS]
+    wheel_speeds = np.array([w.velocity for w in wheels])
+    brake_torques = np.array([w.effort for w in wheels])
+    wheel_speeds.flags.writeable = brake_torques.flags.writeable = False
+    return ChassisReading(wheel_speeds, brake_torques, joints.get(topics.STEERING_JOINT, _NO_JOINT).position)
 
 
 @dataclass(frozen=True)
@@ -96,11 +100,11 @@ class PowertrainReading:
 
 def powertrain_reading(msg: Any) -> PowertrainReading:
     joints = joint_readings(msg)
-    engine = joints.get(topics.ENGINE_JOINT, JointReading())
-    load = joints.get(topics.ENGINE_LOAD_JOINT, JointReading()).position
+    engine = joints.get(topics.ENGINE_JOINT, _NO_JOINT)
+    load = joints.get(topics.ENGINE_LOAD_JOINT, _NO_JOINT).position
     if math.isfinite(load) and not -0.01 <= load <= 1.01:
         load = NAN
-    gear = joints.get(topics.GEAR_JOINT, JointReading()).position
+    gear = joints.get(topics.GEAR_JOINT, _NO_JOINT).position
     if math.isfinite(gear) and (gear < 0.5 or gear > 40):
         gear = NAN
     return PowertrainReading(
@@ -108,7 +112,7 @@ def powertrain_reading(msg: Any) -> PowertrainReading:
         engine_torque=engine.effort,
         engine_load=load,
         gear=gear,
-        drive_force=joints.get(topics.DRIVE_JOINT, JointReading()).effort,
+        drive_force=joints.get(topics.DRIVE_JOINT, _NO_JOINT).effort,
     )
 
 
@@ -116,6 +120,15 @@ def imu_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     """Specific force and angular rate of a sensor_msgs/Imu (body frame, REP-145)."""
     a, w = msg.linear_acceleration, msg.angular_velocity
     return np.array([a.x, a.y, a.z], dtype=float), np.array([w.x, w.y, w.z], dtype=float)
+
+
+@per_view
+def checked_imu_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """:func:`imu_arrays` (read-only: one reading of a view is shared by the nodes of a
+    process) and :func:`imu_rejection`'s verdict on them."""
+    f, w = imu_arrays(msg)
+    f.flags.writeable = w.flags.writeable = False
+    return f, w, imu_rejection(f, w)
 
 
 def imu_plausible(f: np.ndarray, w: np.ndarray) -> bool:

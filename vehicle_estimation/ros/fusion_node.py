@@ -34,8 +34,9 @@ from vehicle_estimation.estimators.fusion.esekf import FusionEKF
 from vehicle_estimation.ros.conversions import MAX_SPEED, MalformedMessage, chassis_reading
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
-from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_stamp
-from vehicle_estimation.ros.runtime.upstream import companion
+from vehicle_estimation.ros.cdr import StampedLayout
+from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_ns, stamp_ns
+from vehicle_estimation.ros.runtime.upstream import companion_bytes
 
 FUSION_GRADE = topics.FUSION_GRADE
 #: Floor of the wheel-speed fallback's std (wheel-speed resolution at a crawl) [m/s].
@@ -69,6 +70,8 @@ class FusionNode(EstimatorNode):
         self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
         self.pub_grade = self.publisher(Vector3Stamped, FUSION_GRADE)
         self.pub_bias = self.publisher(Imu, topics.IMU_BIAS)
+        self._imu_layout = StampedLayout(self.base_frame, 37)
+        self._odom_layout = StampedLayout(self.odom_frame, 85, child_frame_id=self.base_frame)
         self.bias_rate = self.declare_float(
             "bias_rate_hz", 10.0, "Rate of estimation/imu_bias [Hz]", 0.1, 1000.0)
         # Each publish costs ~0.1 ms of Python and DDS: at the IMU rate this output alone was a
@@ -180,39 +183,22 @@ class FusionNode(EstimatorNode):
     # -------------------------------------------------------------- outputs
     def publish_imu(self, t: float, raw: Imu, f: np.ndarray, w: np.ndarray) -> None:
         fc, wc = self.ekf.compensated_imu(f, w)
-        out = Imu()
-        # copied field by field: raw may be a message or a ros.cdr view
-        out.header.stamp.sec, out.header.stamp.nanosec = raw.header.stamp.sec, raw.header.stamp.nanosec
-        out.header.frame_id = self.base_frame
-        q = self.ekf.quaternion
-        out.orientation.x, out.orientation.y, out.orientation.z, out.orientation.w = (float(v) for v in q)
-        out.orientation_covariance = _flat3(self.ekf.attitude_covariance)
-        out.linear_acceleration.x, out.linear_acceleration.y, out.linear_acceleration.z = (float(v) for v in fc)
-        out.angular_velocity.x, out.angular_velocity.y, out.angular_velocity.z = (float(v) for v in wc)
-        out.linear_acceleration_covariance = list(raw.linear_acceleration_covariance)
-        out.angular_velocity_covariance = list(raw.angular_velocity_covariance)
-        self.publish(self.pub_imu, out)
+        # raw may be a message or a ros.cdr view: its stamp and covariances are read, not copied
+        values = np.concatenate((self.ekf.quaternion, np.ravel(self.ekf.attitude_covariance), wc,
+                                 raw.angular_velocity_covariance, fc, raw.linear_acceleration_covariance))
+        self.publish(self.pub_imu, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
 
     def publish_bias(self, raw: Imu) -> None:
         """The IMU bias estimate in sensor_msgs/Imu form (see ros.runtime.upstream.FusionImuBias)."""
         ekf = self.ekf
-        out = Imu()
-        # copied field by field: raw may be a message or a ros.cdr view
-        out.header.stamp.sec, out.header.stamp.nanosec = raw.header.stamp.sec, raw.header.stamp.nanosec
-        out.header.frame_id = self.base_frame
         # orientation: the IMU mounting, imu_link -> base_link (REP-145 IMUs report in
         # imu_link); consumers rotate bias-corrected samples with it.
-        o = out.orientation
-        o.x, o.y, o.z, o.w = (float(v) for v in rotmat_to_quat(ekf.mounting_rotation))
         mount_cov = np.zeros((3, 3))
         mount_cov[1:, 1:] = ekf.mounting_covariance
-        out.orientation_covariance = _flat3(mount_cov)
-        a, w = out.linear_acceleration, out.angular_velocity
-        a.x, a.y, a.z = (float(v) for v in ekf.accel_bias)
-        w.x, w.y, w.z = (float(v) for v in ekf.gyro_bias)
-        out.linear_acceleration_covariance = _flat3(ekf.accel_bias_covariance)
-        out.angular_velocity_covariance = _flat3(ekf.gyro_bias_covariance)
-        self.publish(self.pub_bias, out)
+        values = np.concatenate((rotmat_to_quat(ekf.mounting_rotation), mount_cov.ravel(),
+                                 ekf.gyro_bias, np.ravel(ekf.gyro_bias_covariance),
+                                 ekf.accel_bias, np.ravel(ekf.accel_bias_covariance)))
+        self.publish(self.pub_bias, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
 
     def publish_odometry(self, t: float) -> None:
         ekf = self.ekf
@@ -222,30 +208,18 @@ class FusionNode(EstimatorNode):
             self.note_event("fusion state became non-finite: resetting")
             self.reset_estimators()
             return
-        odom = Odometry()
-        sec_to_stamp(t, odom.header.stamp)
-        odom.header.frame_id = self.odom_frame
-        odom.child_frame_id = self.base_frame
-        odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z = (float(x) for x in p)
-        o = odom.pose.pose.orientation
-        o.x, o.y, o.z, o.w = (float(x) for x in q)
         pose_cov = np.zeros((6, 6))
         pose_cov[:3, :3] = ekf.position_covariance
         pose_cov[3:, 3:] = ekf.attitude_covariance
-        odom.pose.covariance = [float(x) for x in pose_cov.ravel()]
-        lin = odom.twist.twist.linear
-        lin.x, lin.y, lin.z = (float(x) for x in v_body)
         _, wc = ekf.compensated_imu(np.zeros(3), self._last_angular_rate)
-        ang = odom.twist.twist.angular
-        ang.x, ang.y, ang.z = (float(x) for x in wc)
         twist_cov = np.zeros((6, 6))
         twist_cov[:3, :3] = ekf.velocity_body_covariance
         twist_cov[3:, 3:] = ekf.gyro_bias_covariance
-        odom.twist.covariance = [float(x) for x in twist_cov.ravel()]
-        self.publish(self.pub_odom, odom)
+        values = np.concatenate((p, q, pose_cov.ravel(), v_body, wc, twist_cov.ravel()))
+        self.publish(self.pub_odom, self._odom_layout.pack(sec_to_ns(t), values.tolist()))
         grade_var = float(ekf.road_grade_variance)
-        self.publish(self.pub_grade, companion(t, float(ekf.road_grade), grade_var,
-                                               grade_var < (0.5 * math.pi / 180.0) ** 2, self.base_frame))
+        self.publish(self.pub_grade, companion_bytes(t, float(ekf.road_grade), grade_var,
+                                                     grade_var < (0.5 * math.pi / 180.0) ** 2, self.base_frame))
 
     # -------------------------------------------------------------- bookkeeping
     def reset_estimators(self) -> None:
@@ -293,10 +267,6 @@ class FusionNode(EstimatorNode):
         for k, v in getattr(ekf, "events", {}).items():     # imu_gap, align_restart, ...
             values[f"filter event {k}"] = str(v)
         return values
-
-
-def _flat3(m: np.ndarray) -> list[float]:
-    return [float(x) for x in np.asarray(m, dtype=float).reshape(9)]
 
 
 def main(args: list[str] | None = None) -> int:

@@ -64,6 +64,7 @@ from vehicle_estimation.estimators.registry import MASS_METHODS
 from vehicle_estimation.ros.conversions import (
     MalformedMessage, chassis_reading, forward_speed_entry, odometry_entry, powertrain_reading)
 from vehicle_estimation.ros.persistence import StateFileError, load_state, save_state
+from vehicle_estimation.ros.cdr import float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
 from vehicle_estimation.ros.runtime.spin import run_node
@@ -71,7 +72,7 @@ from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S
 from vehicle_estimation.ros.runtime.upstream import (
     FusionImuBias,
     UpstreamHistory,
-    companion,
+    companion_bytes,
     companion_value,
     is_fresh,
 )
@@ -343,8 +344,8 @@ class MassNode(EstimatorNode):
             self.note_event("mass estimate became non-finite: resetting to the prior")
             self.core.reset()
             mass, variance, converged = float(self.core.mass), float(self.core.variance), False
-        self.publish(self.pub_stamped, companion(t, mass, variance, converged))
-        self.publish(self.pub, Float64(data=mass))
+        self.publish(self.pub_stamped, companion_bytes(t, mass, variance, converged))
+        self.publish(self.pub, float64_bytes(mass))
 
     def reset_estimators(self) -> None:
         self.core.reset()

@@ -41,6 +41,7 @@ from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.registry import SLOPE_METHODS
 from vehicle_estimation.estimators.slope.road_slope import GradeSample
 from vehicle_estimation.ros.conversions import forward_speed_entry, planar_velocity_entry
+from vehicle_estimation.ros.cdr import float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
 from vehicle_estimation.ros.runtime.spin import run_node
@@ -48,7 +49,7 @@ from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S
 from vehicle_estimation.ros.runtime.upstream import (
     FusionImuBias,
     UpstreamHistory,
-    companion,
+    companion_bytes,
     companion_value,
     is_fresh,
 )
@@ -157,8 +158,8 @@ class SlopeNode(EstimatorNode):
         if self.missing:
             variance = max(variance, PRIOR_VARIANCE)
             converged = False
-        self.publish(self.pub_stamped, companion(t, slope, variance, converged))
-        self.publish(self.pub, Float64(data=float(slope)))
+        self.publish(self.pub_stamped, companion_bytes(t, slope, variance, converged))
+        self.publish(self.pub, float64_bytes(float(slope)))
 
     def reset_estimators(self) -> None:
         self._make_core()

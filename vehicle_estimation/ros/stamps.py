@@ -6,7 +6,7 @@ from typing import Any
 
 from vehicle_estimation.estimators.common.guard import STAMP_TOLERANCE_S
 
-__all__ = ["STAMP_TOLERANCE_S", "stamp_ns", "stamp_to_sec", "sec_to_stamp"]
+__all__ = ["STAMP_TOLERANCE_S", "stamp_ns", "stamp_to_sec", "sec_to_ns", "sec_to_stamp"]
 
 
 def stamp_ns(stamp: Any) -> int:
@@ -19,9 +19,14 @@ def stamp_to_sec(stamp: Any) -> float:
     return stamp_ns(stamp) * 1e-9
 
 
+def sec_to_ns(t: float) -> int:
+    """Integer nanoseconds of float seconds (rounded to the nanosecond)."""
+    return int(round(t * 1e9))
+
+
 def sec_to_stamp(t: float, msg_stamp: Any) -> Any:
     """Fill a builtin_interfaces/Time from float seconds (rounded to the nanosecond)."""
-    ns = int(round(t * 1e9))
+    ns = sec_to_ns(t)
     msg_stamp.sec = ns // 1_000_000_000
     msg_stamp.nanosec = ns % 1_000_000_000
     return msg_stamp

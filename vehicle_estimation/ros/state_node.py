@@ -78,14 +78,15 @@ from vehicle_estimation.estimators.state.core import ModelErrorSettings, RollAcc
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
+from vehicle_estimation.ros.cdr import StampedLayout, float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
 from vehicle_estimation.ros.runtime.spin import run_node
-from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_stamp
+from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_ns
 from vehicle_estimation.ros.runtime.upstream import (
     FusionImuBias,
     UpstreamHistory,
-    companion,
+    companion_bytes,
     companion_value,
     is_fresh,
 )
@@ -221,6 +222,7 @@ class StateNode(EstimatorNode):
             "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
 
         self.pub_state = self.publisher(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
+        self._state_layout = StampedLayout(topics.BASE_FRAME, 42)
         self.pub_beta = self.publisher(Float64, topics.SIDESLIP)
         self.pub_beta_stamped = self.publisher(Vector3Stamped, topics.SIDESLIP_STAMPED)
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)
@@ -342,18 +344,6 @@ class StateNode(EstimatorNode):
         if not math.isfinite(steer):
             steer = 0.0
         self._steer = steer
-        slope = self._upstream(self.slope, t, math.nan, SLOPE_INPUT)
-        # Without the slope the filter assumes a level road and adds the grade's acceleration
-        # error as process noise, so the variance says the estimate knows less.
-        self.core.extra_vx_noise_density = (
-            (self.missing_slope_noise_density if math.isnan(slope) else 0.0)
-            + (0.0 if self._vx_measured or not self.core.initialised else self.dead_reckoning_noise_density))
-        inputs = VehicleInputs(
-            steer_angle=steer,
-            wheel_speeds=wheels,
-            slope=0.0 if math.isnan(slope) else slope,
-            mass=self._upstream(self.mass, t, self.vehicle.mass, MASS_INPUT),
-        )
         if not self.core.initialised and self.init_from_wheels and not np.isfinite(wheels).all():
             # Starting from initial_vx while the car may be moving costs seconds of transient
             # (and a wrong slope and mass downstream): wait up to WHEEL_WAIT_S for the wheels.
@@ -371,6 +361,18 @@ class StateNode(EstimatorNode):
         self._z_count += 1
         if self.core.initialised and t - self._last_step_t < 1.0 / self.filter_rate - STAMP_TOLERANCE_S:
             return
+        slope = self._upstream(self.slope, t, math.nan, SLOPE_INPUT)
+        # Without the slope the filter assumes a level road and adds the grade's acceleration
+        # error as process noise, so the variance says the estimate knows less.
+        self.core.extra_vx_noise_density = (
+            (self.missing_slope_noise_density if math.isnan(slope) else 0.0)
+            + (0.0 if self._vx_measured or not self.core.initialised else self.dead_reckoning_noise_density))
+        inputs = VehicleInputs(
+            steer_angle=steer,
+            wheel_speeds=wheels,
+            slope=0.0 if math.isnan(slope) else slope,
+            mass=self._upstream(self.mass, t, self.vehicle.mass, MASS_INPUT),
+        )
         count = self._z_count
         z = self._z_sum / count
         z[1] += self._roll_acceleration.step(t)
@@ -408,19 +410,13 @@ class StateNode(EstimatorNode):
             self.note_event("vehicle-state filter became non-finite: re-initialising")
             self.core.reset()
             return
-        msg = TwistWithCovarianceStamped()
-        sec_to_stamp(t, msg.header.stamp)
-        msg.header.frame_id = topics.BASE_FRAME
-        msg.twist.twist.linear.x = float(x[0])
-        msg.twist.twist.linear.y = float(x[1])
-        msg.twist.twist.angular.z = float(x[2])
         cov = np.zeros((6, 6))
         idx = [0, 1, 5]
         cov[np.ix_(idx, idx)] = P[:3, :3]
         for i in (2, 3, 4):
             cov[i, i] = 1e6  # not estimated: vz, roll rate, pitch rate
-        msg.twist.covariance = [float(c) for c in cov.ravel()]
-        self.publish(self.pub_state, msg)
+        twist = (float(x[0]), float(x[1]), 0.0, 0.0, 0.0, float(x[2]))
+        self.publish(self.pub_state, self._state_layout.pack(sec_to_ns(t), twist + tuple(cov.ravel().tolist())))
         if abs(x[0]) >= self.min_dynamic_speed:
             beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
             converged = self._vx_measured and not (self.missing - self._fallbacks_in_variance)
@@ -430,8 +426,8 @@ class StateNode(EstimatorNode):
             beta = math.atan(self.vehicle.lr * math.tan(self._steer) / self.vehicle.wheelbase)
             beta_var, converged = math.radians(5.0) ** 2, False
         beta_var = min(beta_var, (math.pi / 2) ** 2) if math.isfinite(beta_var) else (math.pi / 2) ** 2
-        self.publish(self.pub_beta_stamped, companion(t, beta, beta_var, converged))
-        self.publish(self.pub_beta, Float64(data=beta))
+        self.publish(self.pub_beta_stamped, companion_bytes(t, beta, beta_var, converged))
+        self.publish(self.pub_beta, float64_bytes(beta))
 
     def reset_estimators(self) -> None:
         self.core = self._make_core()
@@ -463,15 +459,13 @@ class StateNode(EstimatorNode):
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 
 
-def _stated_imu_variances(msg: Imu) -> np.ndarray:
+def _stated_imu_variances(msg: Imu) -> tuple[float, float, float]:
     """The variances of ax, ay and the yaw rate an IMU message states (REP-145: a covariance
     of zeros, or -1 first, is unknown: 0)."""
     a, w = msg.linear_acceleration_covariance, msg.angular_velocity_covariance
     if a[0] < 0.0:
-        a = (0.0,) * 9
-    if w[0] < 0.0:
-        w = (0.0,) * 9
-    return np.array([max(a[0], 0.0), max(a[4], 0.0), max(w[8], 0.0)])
+        return (0.0, 0.0, max(w[8], 0.0)) if w[0] >= 0.0 else (0.0, 0.0, 0.0)
+    return (max(a[0], 0.0), max(a[4], 0.0), max(w[8], 0.0) if w[0] >= 0.0 else 0.0)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -39,12 +39,17 @@ Callback = Callable[[Any], None]
 
 
 class _Message:
-    """One publication: the object and/or its CDR bytes, each made at most once."""
+    """One publication: the object and/or its CDR bytes, each made at most once.
 
-    __slots__ = ("msg_type", "_obj", "_data")
+    ``canonical``: the bytes are the canonical serialization (zero padding, as a DDS writer and
+    rosbags make them): a node published them pre-serialized (``ros.cdr``). Bytes that
+    rclpy serialized from an object keep whatever its buffer held in the padding.
+    """
 
-    def __init__(self, msg_type: Any, obj: Any = None, data: bytes | None = None) -> None:
-        self.msg_type, self._obj, self._data = msg_type, obj, data
+    __slots__ = ("msg_type", "_obj", "_data", "canonical")
+
+    def __init__(self, msg_type: Any, obj: Any = None, data: bytes | None = None, canonical: bool = False) -> None:
+        self.msg_type, self._obj, self._data, self.canonical = msg_type, obj, data, canonical
 
     @property
     def data(self) -> bytes:
@@ -67,7 +72,7 @@ class InProcessPublisher:
 
     def publish(self, msg: Any) -> None:
         if isinstance(msg, (bytes, bytearray, memoryview)):
-            self.bus.post(self.topic_name, _Message(self.msg_type, data=bytes(msg)))
+            self.bus.post(self.topic_name, _Message(self.msg_type, data=bytes(msg), canonical=True))
         else:
             self.bus.post(self.topic_name, _Message(self.msg_type, obj=msg))
 
@@ -81,6 +86,13 @@ class InProcessSubscription:
 
     def deliver(self, message: _Message) -> None:
         self.callback(message.data if self.raw else message.obj)
+
+
+class _Recording(InProcessSubscription):
+    """A recorder's subscription: the bytes and whether they are canonical (see ``_Message``)."""
+
+    def deliver(self, message: _Message) -> None:
+        self.callback((message.data, message.canonical))
 
     def get_publisher_count(self) -> int:
         return len(self.bus.publishers[self.topic_name])
@@ -121,6 +133,12 @@ class InProcessBus:
 
     def create_subscription(self, topic_name: str, callback: Callback, *, raw: bool) -> InProcessSubscription:
         sub = InProcessSubscription(self, topic_name, callback, raw)
+        self.subscribers[topic_name].append(sub)
+        return sub
+
+    def create_recording(self, topic_name: str, callback: Callable[[tuple[bytes, bool]], None]) -> InProcessSubscription:
+        """Subscribe ``callback((data, canonical))`` to every message on ``topic_name``."""
+        sub = _Recording(self, topic_name, callback, raw=True)
         self.subscribers[topic_name].append(sub)
         return sub
 

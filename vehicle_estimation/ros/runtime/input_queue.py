@@ -49,6 +49,7 @@ class StampOrderedInputs:
         self._last_stamp_by_topic: dict[str, float] = {}
         self._frames: dict[str, str] = {}
         self._imu_repeat: dict[str, tuple[tuple[float, ...], int]] = {}
+        self._frozen: set[str] = set()      # topics now flagged frozen
         self.max_len = 0      # longest the queue has been (load check)
 
     def __len__(self) -> int:
@@ -78,7 +79,7 @@ class StampOrderedInputs:
                 self.owner.on_time_jump(
                     f"time jumped back {last - t:.3f} s on {topic}: "
                     "resetting estimators (bag loop or restarted source)")
-            self._last_stamp_by_topic[topic] = max(last, t) if t >= last - self.time_jump_reset_s else t
+            self._last_stamp_by_topic[topic] = t if t > last or t < last - self.time_jump_reset_s else last
             if not self._consistent(topic, msg):
                 continue
             try:
@@ -99,8 +100,10 @@ class StampOrderedInputs:
         """
         header = getattr(msg, "header", None)
         if header is not None:
-            frame = str(header.frame_id)
-            expected = self._frames.setdefault(topic, frame)
+            frame = header.frame_id
+            expected = self._frames.get(topic)
+            if expected is None:
+                self._frames[topic] = expected = frame
             if frame != expected:
                 self.owner.reject(f"{topic}:frame_id")
                 self.owner.get_logger().warn(f"{topic}: frame_id '{frame}', expected '{expected}': rejected",
@@ -115,6 +118,9 @@ class StampOrderedInputs:
             if repeats >= self.frozen_imu_samples:
                 self.owner.reject(f"{topic}:frozen")
                 self.owner.set_missing(f"{topic} (frozen)", True)
+                self._frozen.add(topic)
                 return False
-            self.owner.set_missing(f"{topic} (frozen)", False)
+            if topic in self._frozen:
+                self._frozen.discard(topic)
+                self.owner.set_missing(f"{topic} (frozen)", False)
         return True

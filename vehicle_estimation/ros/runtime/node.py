@@ -24,13 +24,13 @@ from sensor_msgs.msg import Imu
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.ros.cdr import raw_reader
-from vehicle_estimation.ros.conversions import imu_arrays, imu_rejection, speed_reading
+from vehicle_estimation.ros.conversions import checked_imu_arrays, speed_reading
 from vehicle_estimation.ros.runtime.diagnostics import NodeHealth
 from vehicle_estimation.ros.runtime.in_process import InProcessBus
 from vehicle_estimation.ros.runtime.input_queue import StampOrderedInputs
 from vehicle_estimation.ros.runtime.parameters import ParameterDeclarations
 from vehicle_estimation.ros.runtime.qos import output_qos, sensor_qos
-from vehicle_estimation.ros.stamps import stamp_ns, stamp_to_sec
+from vehicle_estimation.ros.stamps import stamp_ns
 from vehicle_estimation.ros.runtime.sync import ReplaySyncResponder, TickRelease
 from vehicle_estimation.ros.runtime.upstream import FusionImuBias, UpstreamHistory
 
@@ -125,26 +125,25 @@ class EstimatorNode(ParameterDeclarations, Node):
         self._subscriptions_by_topic[sub.topic_name] = sub
         return sub
 
-    def subscribe_primary(self, msg_type: Any, topic: str,
-                          handler: Callable[[float, Any], None],
-                          stamp_of: Callable[[Any], float] | None = None) -> Any:
+    def subscribe_primary(self, msg_type: Any, topic: str, handler: Callable[[float, Any], None]) -> Any:
         """Subscribe a sensor input that is processed in stamp order (sensor-data QoS)."""
-        stamp_of = stamp_of or (lambda m: stamp_to_sec(m.header.stamp))
+        inputs, push = self.inputs, self.inputs.push
 
         def deliver(name: str, msg: Any, read: Callable[[Any], Any]) -> None:
             try:
                 msg = read(msg)
-                t = stamp_of(msg)
+                ns = stamp_ns(msg.header.stamp)
             except Exception:  # malformed message: no usable stamp
-                self.reject(f"{name}:bad_stamp")
-                return
+                ns = -1
             # 0 s is a valid stamp: simulators, CSV exports and many loggers start there.
-            if not math.isfinite(t) or t < 0.0:
+            if ns < 0:
                 self.reject(f"{name}:bad_stamp")
                 return
-            ns = stamp_ns(msg.header.stamp) if hasattr(msg, "header") else int(round(t * 1e9))
-            self.inputs.push(ns, name, handler, msg)
-            self._release_available()
+            push(ns, name, handler, msg)
+            if self._sync is None:
+                inputs.release(math.inf)
+            else:
+                self._sync.try_complete()
 
         return self._subscribe_counted(msg_type, topic, sensor_qos(self.input_depth), deliver)
 
@@ -170,12 +169,6 @@ class EstimatorNode(ParameterDeclarations, Node):
 
         return self._subscribe_counted(msg_type, topic, output_qos(self.output_depth), deliver)
 
-    def _release_available(self) -> None:
-        if self._sync is None:
-            self.inputs.release(math.inf)
-        else:
-            self._sync.try_complete()
-
     def _on_replay_clock_jump(self, text: str) -> None:
         self.note_event(text)
         self.health.resets += 1
@@ -197,8 +190,7 @@ class EstimatorNode(ParameterDeclarations, Node):
     def read_imu(self, msg: Any) -> tuple[Any, Any] | None:
         """Specific force and angular rate of an IMU message (arrays, body frame), or None for
         a non-finite or physically absurd sample, which is rejected and counted."""
-        f, w = imu_arrays(msg)
-        reason = imu_rejection(f, w)
+        f, w, reason = checked_imu_arrays(msg)
         if reason is not None:
             self.reject(reason)
             return None

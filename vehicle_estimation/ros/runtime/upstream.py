@@ -14,9 +14,11 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.serialization import deserialize_message
 
 from vehicle_estimation.estimators.common.rotations import quat_to_rotmat
-from vehicle_estimation.ros.stamps import sec_to_stamp, stamp_to_sec
+from vehicle_estimation.ros.cdr import StampedLayout
+from vehicle_estimation.ros.stamps import sec_to_ns, stamp_to_sec
 
 #: An upstream value older than this, at the stamp it is wanted for, is missing [s].
 STALE_AFTER_S = 1.0
@@ -75,16 +77,23 @@ class UpstreamHistory:
         return self._stamps[-1] if self._stamps else None
 
 
+_COMPANION_LAYOUTS: dict[str, StampedLayout] = {}
+
+
+def companion_bytes(stamp: float, value: float, variance: float, converged: bool,
+                    frame_id: str = "base_link") -> bytes:
+    """The stamped companion of a scalar estimate, serialized (what the nodes publish):
+    a geometry_msgs/Vector3Stamped with x = value, y = variance, z = converged (1/0)."""
+    layout = _COMPANION_LAYOUTS.get(frame_id)
+    if layout is None:
+        layout = _COMPANION_LAYOUTS[frame_id] = StampedLayout(frame_id, 3)
+    return layout.pack(sec_to_ns(stamp), (float(value), float(variance), 1.0 if converged else 0.0))
+
+
 def companion(stamp: float, value: float, variance: float, converged: bool,
               frame_id: str = "base_link") -> Vector3Stamped:
-    """The stamped companion of a scalar estimate: x = value, y = variance, z = converged (1/0)."""
-    msg = Vector3Stamped()
-    sec_to_stamp(stamp, msg.header.stamp)
-    msg.header.frame_id = frame_id
-    msg.vector.x = float(value)
-    msg.vector.y = float(variance)
-    msg.vector.z = 1.0 if converged else 0.0
-    return msg
+    """:func:`companion_bytes` as a message."""
+    return deserialize_message(companion_bytes(stamp, value, variance, converged, frame_id), Vector3Stamped)
 
 
 def companion_value(msg: Vector3Stamped) -> tuple[float, StampedValue] | None:
