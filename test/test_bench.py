@@ -24,7 +24,11 @@ def test_bench_cores_and_live_print_the_side_by_side_figures(tmp_path):
     assert set(live["cpu_share"]) == {"fusion", "vehicle_state", "road_slope", "mass"}
     assert 0.0 < live["floor_share"] < live["cpu_share_total"]   # our nodes cost more than doing nothing
     assert live["latency_ms"]
+    composed = live["in_process"]                                # run --in-process, same run
+    assert composed["cpu_share_total"] > 0.0 and composed["latency_ms"]
+    assert set(composed["latency_ms"]) == set(live["latency_ms"])   # every output came out
     report = (out / "bench.md").read_text()
     assert "Framework floor, same run" in report
+    assert "the nodes composed into one process" in report
     if compiled.enabled():
         assert "against the same maths in numpy" in report and "VB-ACKF, N = 10 (shipped): compiled" in report

@@ -60,3 +60,35 @@ def test_run_starts_every_node_and_stops_them_all(sig):
         time.sleep(0.1)
     assert not any(_alive(c) for c in children), "orphan node processes left behind"
 
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_run_in_process_composes_the_nodes_and_stops_cleanly(sig):
+    """`run --in-process`: every node in the launcher's own process (no child), stopped by a
+    signal with exit 0. Its topics end to end: test_bench (live, composed)."""
+    launcher = subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "run", "--in-process",
+                                 "--namespace", "/t", "--state-dir", ""],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        started = ""
+        for line in launcher.stdout:
+            if line.startswith("started "):
+                started = line
+                break
+        assert all(spec.name in started for spec in PIPELINE), started
+        assert _children(launcher.pid) == []
+        launcher.send_signal(sig)
+        launcher.wait(timeout=30)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    assert launcher.returncode == 0
+
+
+def test_run_in_process_refuses_a_bad_parameter_naming_it(tmp_path):
+    params = tmp_path / "bad.yaml"
+    params.write_text("mass:\n  ros__parameters:\n    time_jump_reset_s: 0.0\n")
+    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "run", "--in-process", "--params", "estimation",
+                           "--params", str(params), "--state-dir", ""], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "mass: invalid parameter" in proc.stderr and "time_jump_reset_s" in proc.stderr

@@ -21,6 +21,7 @@ Sections (``--sections``, default all):
     (no replay sync): CPU share of each node, and the latency from an input's publication to
     the publication of the output it triggers (p50, p99), per output. Beside them, in the same
     run, the framework floor (:mod:`.bench_floor`): a node that only receives the same topics.
+    Then the same drive to the nodes composed into one process (``run --in-process``).
 
 The targets (issues 6 and 15) are printed beside the figures. Timings depend on the machine and on
 what else runs on it: run it on an idle machine and compare like with like.
@@ -125,7 +126,10 @@ def run_pipeline(minutes: float, workdir: Path) -> dict[str, Any]:
 
 
 def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
-    """Publish ``seconds`` of a drive at real-time rate to live nodes; CPU share and latency."""
+    """Publish ``seconds`` of a drive at real-time rate to live nodes; CPU share and latency.
+
+    Twice: to the four node processes beside the framework floor (:mod:`.bench_floor`), then
+    to the same nodes composed into one process (``run --in-process``)."""
     import rclpy
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -138,7 +142,6 @@ def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
     from vehicle_estimation.ros.runtime.spin import make_executor
 
     bag = _drive_bag(max(seconds / 60.0, 1.0) if seconds > 60 else 1.0, workdir)
-    group = NodeGroup(_params_files())
     rclpy.init()
     node = Node("bench_live_player")
     reliable = QoSProfile(reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
@@ -167,62 +170,98 @@ def run_live(seconds: float, workdir: Path) -> dict[str, Any]:
     executor = make_executor()
     executor.add_node(node)
     spinner = threading.Thread(target=lambda: _spin_while(executor, rclpy), daemon=True)
-    group.start()
-    # The framework floor, in the same run: rclpy's own cost of receiving the same topics.
-    floor = subprocess.Popen([sys.executable, "-m", "vehicle_estimation.evaluation.bench_floor"],
-                             stdout=subprocess.PIPE, text=True)
     result: dict[str, Any] = {}
+    typestore = get_typestore(Stores.ROS2_JAZZY)
     try:
-        if floor.stdout is None or floor.stdout.readline().strip() != "ready":
-            raise RuntimeError("the framework-floor node did not start")
-        typestore = get_typestore(Stores.ROS2_JAZZY)
         with AnyReader([bag], default_typestore=typestore) as reader:
             conns = [c for c in reader.connections if c.topic.lstrip("/") in topics.INPUT_TOPICS]
             pubs = {c.topic: node.create_publisher(msg_class(c.msgtype), c.topic.lstrip("/"), reliable)
                     for c in conns}
             spinner.start()
-            deadline = time.monotonic() + 60.0
-            while time.monotonic() < deadline and not all(
-                    p.get_subscription_count() >= 1 for p in pubs.values()):
-                time.sleep(0.1)
-            time.sleep(1.0)
-            cpu0 = {n.spec.name: cpu_seconds(n.process.pid) for n in group.nodes}
-            floor0 = cpu_seconds(floor.pid)
-            t_bag0 = None
-            wall0 = time.monotonic()
-            for conn, stamp_ns, data in reader.messages(connections=conns):
-                if t_bag0 is None:
-                    t_bag0 = stamp_ns
-                due = wall0 + (stamp_ns - t_bag0) * 1e-9
-                if (stamp_ns - t_bag0) * 1e-9 > seconds:
-                    break
-                delay = due - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                topic = conn.topic.lstrip("/")
+
+            def play(pids: dict[str, int], floor_pid: int | None) -> dict[str, Any]:
+                deadline = time.monotonic() + 60.0
+                while time.monotonic() < deadline and not all(
+                        p.get_subscription_count() >= 1 for p in pubs.values()):
+                    time.sleep(0.1)
+                time.sleep(2.0)
                 with lock:
-                    sent_wall[(topic, round(stamp_ns / 1000))] = time.monotonic()
-                pubs[conn.topic].publish(bytes(data))
-            time.sleep(1.0)
-            wall = time.monotonic() - wall0
-            cpu = {n.spec.name: cpu_seconds(n.process.pid) - cpu0[n.spec.name] for n in group.nodes}
-            result = {"seconds": wall, "cpu_share": {k: v / wall for k, v in cpu.items()},
-                      "cpu_share_total": sum(cpu.values()) / wall,
-                      "floor_share": (cpu_seconds(floor.pid) - floor0) / wall,
-                      "latency_ms": {t: {"n": len(v), "p50": 1e3 * float(np.percentile(v, 50)),
-                                         "p99": 1e3 * float(np.percentile(v, 99))}
-                                     for t, v in latencies.items() if v}}
+                    sent_wall.clear()
+                    latencies.clear()
+                cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
+                floor0 = cpu_seconds(floor_pid) if floor_pid else 0.0
+                t_bag0 = None
+                wall0 = time.monotonic()
+                for conn, stamp_ns, data in reader.messages(connections=conns):
+                    if t_bag0 is None:
+                        t_bag0 = stamp_ns
+                    due = wall0 + (stamp_ns - t_bag0) * 1e-9
+                    if (stamp_ns - t_bag0) * 1e-9 > seconds:
+                        break
+                    delay = due - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    topic = conn.topic.lstrip("/")
+                    with lock:
+                        sent_wall[(topic, round(stamp_ns / 1000))] = time.monotonic()
+                    pubs[conn.topic].publish(bytes(data))
+                time.sleep(1.0)
+                wall = time.monotonic() - wall0
+                cpu = {name: cpu_seconds(pid) - cpu0[name] for name, pid in pids.items()}
+                with lock:
+                    measured = {t: list(v) for t, v in latencies.items() if v}
+                out = {"seconds": wall, "cpu_share": {k: v / wall for k, v in cpu.items()},
+                       "cpu_share_total": sum(cpu.values()) / wall,
+                       "latency_ms": {t: {"n": len(v), "p50": 1e3 * float(np.percentile(v, 50)),
+                                          "p99": 1e3 * float(np.percentile(v, 99))} for t, v in measured.items()}}
+                if floor_pid:
+                    out["floor_share"] = (cpu_seconds(floor_pid) - floor0) / wall
+                return out
+
+            group = NodeGroup(_params_files())
+            group.start()
+            # The framework floor, in the same run: rclpy's own cost of receiving the same topics.
+            floor = subprocess.Popen([sys.executable, "-m", "vehicle_estimation.evaluation.bench_floor"],
+                                     stdout=subprocess.PIPE, text=True)
+            try:
+                if floor.stdout is None or floor.stdout.readline().strip() != "ready":
+                    raise RuntimeError("the framework-floor node did not start")
+                result = play({n.spec.name: n.process.pid for n in group.nodes}, floor.pid)
+            finally:
+                _stop(floor)
+                group.stop()
+            composed = subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "run", "--in-process",
+                                         "--state-dir", ""], stderr=subprocess.PIPE, text=True)
+            try:
+                if composed.stderr is None or not _wait_for_line(composed.stderr, "started "):
+                    raise RuntimeError("run --in-process did not start")
+                result["in_process"] = play({"composed": composed.pid}, None)
+            finally:
+                _stop(composed)
     finally:
-        floor.send_signal(signal.SIGINT)
-        try:
-            floor.wait(timeout=10.0)
-        except subprocess.TimeoutExpired:
-            floor.kill()
-        group.stop()
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return result
+
+
+def _wait_for_line(stream: Any, prefix: str) -> bool:
+    """Read ``stream`` up to a line starting with ``prefix``, then drain it in the background
+    (a full pipe would block the process writing to it)."""
+    for line in stream:
+        if line.startswith(prefix):
+            threading.Thread(target=lambda: [None for _ in stream], daemon=True).start()
+            return True
+    return False
+
+
+def _stop(process: subprocess.Popen) -> None:
+    process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout=10.0)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
 
 
 def _spin_while(executor: Any, rclpy: Any) -> None:
@@ -295,7 +334,27 @@ def format_report(result: dict[str, Any]) -> str:
             worst = max(worst, v["p99"])
         ok = "met" if worst < TARGETS["latency_p99_ms"] else "missed"
         lines += ["", f"Worst p99 latency: {worst:.2f} ms (target < {TARGETS['latency_p99_ms']:g} ms: {ok})", ""]
+        lines += _composed_lines(lv)
     return "\n".join(lines)
+
+
+def _composed_lines(live: dict[str, Any]) -> list[str]:
+    """The nodes composed into one process (``run --in-process``) against the four processes."""
+    composed = live.get("in_process")
+    if not composed:
+        return []
+    share = composed["cpu_share_total"]
+    ok = "met" if share < TARGETS["cpu_share"] else "missed"
+    worst = max((v["p99"] for v in composed["latency_ms"].values()), default=math.nan)
+    ok_latency = "met" if worst < TARGETS["latency_p99_ms"] else "missed"
+    floor = live.get("floor_share")
+    against_floor = (f"; **{share / floor:.1f}x** one framework floor (it receives each topic once)"
+                     if floor else "")
+    return ["## Live, the nodes composed into one process (`run --in-process`), same run", "",
+            f"{composed['seconds']:.0f} s; **{100 * share:.1f} % of one core** (target < "
+            f"{100 * TARGETS['cpu_share']:g} %: {ok}), {share / live['cpu_share_total']:.2f}x the four node "
+            f"processes'{against_floor}; worst p99 latency {worst:.2f} ms (target < "
+            f"{TARGETS['latency_p99_ms']:g} ms: {ok_latency})", ""]
 
 
 def _floor_line(live: dict[str, Any]) -> list[str]:

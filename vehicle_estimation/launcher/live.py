@@ -3,6 +3,12 @@
 A node that exits is respawned (the mass node resumes from its persisted estimate), except
 one that refused its parameters (exit 2): that stops them all. Ctrl-C or SIGTERM stops them
 all; the children also die with the launcher if it is killed (no orphans).
+
+``run --in-process`` composes the same nodes into this one process instead (as a ROS 2
+component container does), on one executor and a :class:`~vehicle_estimation.ros.runtime.
+in_process.LiveBus`: each sensor message is received and decoded once for all nodes, and the
+estimates pass between nodes without DDS (they are still published for everyone else). It
+costs less CPU and uses one core; the separate processes keep a node's crash to itself.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from vehicle_estimation.launcher.options import add_node_options, add_remap_option, node_group
 
@@ -28,6 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(default: $ROS_HOME/vehicle_estimation, else ~/.ros/vehicle_estimation); "
                         "'' turns persistence off")
     add_remap_option(p, "ROS remapping given to every node as -r FROM:=TO (e.g. imu/data:=/sensors/imu)")
+    p.add_argument("--in-process", action="store_true",
+                   help="compose the nodes into this process on one executor: each sensor message is "
+                        "received once for all nodes, estimates pass between them without DDS (less CPU)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -37,6 +47,8 @@ def main(args: argparse.Namespace) -> int:
         ns = args.namespace.strip("/").replace("/", "_") or "root"
         overrides["mass"] = {"persist.path": str(Path(args.state_dir) / f"mass_{ns}.json")}
     group = node_group(args, overrides, remaps=args.remap)
+    if args.in_process:
+        return run_in_process(group)
     stopping = {"flag": False}
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -62,4 +74,37 @@ def main(args: argparse.Namespace) -> int:
             time.sleep(0.2)
     finally:
         group.stop()
+    return 0
+
+
+def run_in_process(group: Any) -> int:
+    """The group's nodes composed into this process until Ctrl-C or SIGTERM (rclpy's signal
+    handlers shut the context down); exit 2 when a node refuses its parameters."""
+    import rclpy
+    from rclpy.node import Node
+
+    from vehicle_estimation.ros.runtime.in_process import LiveBus
+    from vehicle_estimation.ros.runtime.parameters import ParameterError
+    from vehicle_estimation.ros.runtime.spin import spin
+
+    rclpy.init()
+    # The host of the shared subscriptions, publishers and timers; topics are resolved by the
+    # nodes (namespace, remaps), so its own namespace only names it.
+    host = Node("vehicle_estimation", namespace=group.namespace)
+    nodes: list[Any] = []
+    try:
+        bus = LiveBus(host)
+        try:
+            group.make_in_process(nodes, transport=bus)
+        except ParameterError as exc:
+            print(f"[vehicle_estimation] {exc}", file=sys.stderr)
+            return 2
+        bus.connect()
+        names = ", ".join(node.get_name() for node in nodes)
+        print(f"started {names} in this process, namespace {group.namespace}; Ctrl-C stops them", file=sys.stderr)
+        spin([host, *nodes], "composed")
+    finally:
+        for node in [*nodes, host]:
+            node.destroy_node()
+        rclpy.try_shutdown()
     return 0

@@ -24,7 +24,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Sequence
+from typing import IO, Any, Sequence
 
 from vehicle_estimation.ros import PIPELINE, NodeSpec
 
@@ -94,6 +94,24 @@ class NodeGroup:
     def start(self) -> None:
         for node in self.nodes:
             node.start(self._env())
+
+    def make_in_process(self, made: list, **node_kwargs: Any) -> None:
+        """The group's nodes made in this process instead (``--in-process``): each node class
+        with the arguments its process would get and ``node_kwargs`` (``transport``,
+        ``context``, ...), appended to ``made`` as it is made, so that a caller can destroy
+        those made before a failure. A refused parameter raises ``ParameterError`` naming the
+        node."""
+        import importlib
+
+        from vehicle_estimation.ros.runtime.parameters import ParameterError
+        for proc in self.nodes:
+            node_class = getattr(importlib.import_module(proc.spec.module), proc.spec.node_class)
+            try:
+                made.append(node_class(cli_args=proc.argv[proc.argv.index("--ros-args"):],
+                                       use_global_arguments=False, **node_kwargs))
+                made[-1].check_parameter_overrides()
+            except ParameterError as exc:
+                raise ParameterError(f"{proc.spec.name}: invalid parameter: {exc}") from None
 
     def restart(self, node: NodeProcess) -> None:
         """Start ``node`` again (after it exited) with the same command line."""

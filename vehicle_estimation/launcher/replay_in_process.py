@@ -53,7 +53,6 @@ class InProcessReplay:
     """
 
     def __init__(self, group: Any, namespace: str, writer: Writer | None, typestore: Any) -> None:
-        import importlib
         self.namespace = namespace
         self.writer = writer
         self.bus = InProcessBus()
@@ -62,16 +61,11 @@ class InProcessReplay:
         self.context = _isolated_context()
         self.nodes: list[Any] = []
         try:
-            for proc in group.nodes:
-                node_class = getattr(importlib.import_module(proc.spec.module), proc.spec.node_class)
-                cli_args = proc.argv[proc.argv.index("--ros-args"):]
-                try:
-                    self.nodes.append(node_class(
-                        transport=self.bus, context=self.context, cli_args=cli_args,
-                        use_global_arguments=False, enable_rosout=False, start_parameter_services=False))
-                    self.nodes[-1].check_parameter_overrides()
-                except ParameterError as exc:
-                    raise ReplayError(f"{proc.spec.name}: invalid parameter: {exc}") from None
+            try:
+                group.make_in_process(self.nodes, transport=self.bus, context=self.context, enable_rosout=False,
+                                      start_parameter_services=False)
+            except ParameterError as exc:
+                raise ReplayError(str(exc)) from None
             self._record(list(RECORDED_TOPICS) + [("/diagnostics", DIAGNOSTICS_TYPE)], typestore)
         except BaseException:
             self._shutdown()

@@ -21,6 +21,10 @@ It keeps what makes the DDS replay deterministic, so both give the same bytes:
 
 Node clocks run on the replay's ticks (ROS time override, as ``/clock`` would set it), and
 timers (``/diagnostics``) fire on them.
+
+:class:`LiveBus` is the same bus for nodes composed into one live process (``run
+--in-process``): each outside topic is received once from DDS for all nodes, and the estimates
+go out to DDS as well as to the other nodes.
 """
 
 from __future__ import annotations
@@ -126,12 +130,13 @@ class InProcessBus:
         clock.set_ros_time_override(Time(nanoseconds=self.now_ns))
         self.nodes.append(node)
 
-    def create_publisher(self, msg_type: Any, topic_name: str) -> InProcessPublisher:
+    def create_publisher(self, msg_type: Any, topic_name: str, qos: Any = None) -> InProcessPublisher:
         pub = InProcessPublisher(self, msg_type, topic_name)
         self.publishers[topic_name].append(pub)
         return pub
 
-    def create_subscription(self, topic_name: str, callback: Callback, *, raw: bool) -> InProcessSubscription:
+    def create_subscription(self, topic_name: str, callback: Callback, *, raw: bool, msg_type: Any = None,
+                            qos: Any = None) -> InProcessSubscription:
         sub = InProcessSubscription(self, topic_name, callback, raw)
         self.subscribers[topic_name].append(sub)
         return sub
@@ -191,3 +196,64 @@ class InProcessBus:
         for release in self._releases:
             release.tick(tick_ns)
             self.drain()
+
+
+class LiveBus(InProcessBus):
+    """The bus of the nodes composed into one live process (``run --in-process``).
+
+    Live, the nodes of separate processes each receive every sensor message from DDS, decode
+    and check it, and exchange their estimates through DDS again. Composed, the process takes
+    each topic the nodes need from outside with one rclpy subscription (:meth:`connect`) and
+    hands it to every node on the bus; what a node publishes reaches the other nodes on the
+    bus and the rest of the ROS graph through one DDS publisher per topic. Nodes release their
+    inputs as they arrive (no replay ticks); their timers are rclpy timers of ``host``, on
+    its clock.
+    """
+
+    def __init__(self, host: Any) -> None:
+        super().__init__()
+        self.host = host
+        self._outside: dict[str, Any] = {}                   # topic -> its DDS publisher
+        self._wanted: dict[str, tuple[Any, Any]] = {}        # topic -> (type, QoS) the nodes take
+        self._inputs: dict[str, Any] = {}                    # topic -> its DDS subscription
+
+    def attach(self, node: Any) -> None:
+        self.nodes.append(node)          # the node's clock stays its own
+
+    def create_publisher(self, msg_type: Any, topic_name: str, qos: Any = None) -> InProcessPublisher:
+        if topic_name not in self._outside:
+            self._outside[topic_name] = self.host.create_publisher(msg_type, topic_name, qos if qos is not None else 10)
+        return super().create_publisher(msg_type, topic_name)
+
+    def create_subscription(self, topic_name: str, callback: Callback, *, raw: bool, msg_type: Any = None,
+                            qos: Any = None) -> InProcessSubscription:
+        if msg_type is None or qos is None:
+            raise ValueError(f"{topic_name}: a live bus subscribes outside with the type and QoS")
+        self._wanted.setdefault(topic_name, (msg_type, qos))
+        return super().create_subscription(topic_name, callback, raw=raw)
+
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
+        def fire() -> None:
+            callback()
+            self.drain()
+        return self.host.create_timer(period_s, fire)
+
+    def create_release(self, **kwargs: Any) -> None:
+        return None                      # live: every input is released as it arrives
+
+    def connect(self) -> None:
+        """Once every node is made: one DDS subscription for each topic the nodes take that no
+        node of the bus publishes (the sensors; an upstream node running elsewhere)."""
+        for topic_name, (msg_type, qos) in self._wanted.items():
+            if self.publishers.get(topic_name) or topic_name in self._inputs:
+                continue
+            self._inputs[topic_name] = self.host.create_subscription(
+                msg_type, topic_name, lambda data, name=topic_name, kind=msg_type: self.publish_bytes(name, kind, data),
+                qos, raw=True)
+
+    def post(self, topic_name: str, message: _Message) -> None:
+        outside = self._outside.get(topic_name)
+        if outside is not None:
+            outside.publish(message.data if message._obj is None else message._obj)
+        super().post(topic_name, message)
+

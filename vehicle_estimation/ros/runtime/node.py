@@ -90,7 +90,7 @@ class EstimatorNode(ParameterDeclarations, Node):
     # ------------------------------------------------------------------ topics
     def publisher(self, msg_type: Any, topic: str) -> Any:
         if self.transport is not None:
-            pub = self.transport.create_publisher(msg_type, self.resolve_topic_name(topic))
+            pub = self.transport.create_publisher(msg_type, self.resolve_topic_name(topic), output_qos(self.output_depth))
         else:
             pub = self.create_publisher(msg_type, topic, output_qos(self.output_depth))
         self._publishers_by_topic[pub.topic_name] = pub
@@ -117,7 +117,8 @@ class EstimatorNode(ParameterDeclarations, Node):
             deliver(name, msg, read)
 
         if self.transport is not None:
-            sub = self.transport.create_subscription(self.resolve_topic_name(topic), on_message, raw=view is not None)
+            sub = self.transport.create_subscription(self.resolve_topic_name(topic), on_message, raw=view is not None,
+                                                     msg_type=msg_type, qos=qos)
         else:
             sub = self.create_subscription(msg_type, topic, on_message, qos, raw=view is not None)
         holder["topic"] = sub.topic_name

@@ -43,8 +43,20 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None) ->
         print(f"[vehicle_estimation] invalid parameter: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    try:
+        spin([node], node.get_name())
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def spin(nodes: list[Node], profile_name: str) -> None:
+    """Spin ``nodes`` on one executor until the context shuts down (Ctrl-C, SIGTERM: rclpy's
+    signal handlers); the profile is ``<profile_name>.prof`` (see :func:`_start_profiler`)."""
     executor = make_executor()
-    executor.add_node(node)
+    for node in nodes:
+        executor.add_node(node)
     never = Future()
     profiler = _start_profiler()
     try:
@@ -56,11 +68,8 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None) ->
         pass
     finally:
         if profiler is not None:
-            _dump_profile(profiler, node.get_name())
+            _dump_profile(profiler, profile_name)
         executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
 
 
 def _start_profiler() -> Any:
