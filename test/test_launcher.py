@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -37,11 +39,22 @@ def _alive(pid: int) -> bool:
     return stat.exists() and stat.read_text().rsplit(")", 1)[1].split()[0] != "Z"
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_run_starts_every_node_and_stops_them_all(sig):
-    launcher = subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "run", "--namespace", "/t"],
+@contextlib.contextmanager
+def _launched(*args: str) -> Iterator[subprocess.Popen]:
+    """``vehicle-estimation run ARGS`` (stdout and stderr as one text stream), killed if it is
+    still running at the end."""
+    launcher = subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "run", *args],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
+        yield launcher
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_run_starts_every_node_and_stops_them_all(sig):
+    with _launched("--namespace", "/t") as launcher:
         deadline = time.monotonic() + 30
         while len(_children(launcher.pid)) < len(PIPELINE) and time.monotonic() < deadline:
             time.sleep(0.2)
@@ -51,9 +64,6 @@ def test_run_starts_every_node_and_stops_them_all(sig):
         assert all(_alive(c) for c in children)
         launcher.send_signal(sig)
         launcher.wait(timeout=30)
-    finally:
-        if launcher.poll() is None:
-            launcher.kill()
     assert launcher.returncode == 0
     deadline = time.monotonic() + 10
     while any(_alive(c) for c in children) and time.monotonic() < deadline:
@@ -61,15 +71,11 @@ def test_run_starts_every_node_and_stops_them_all(sig):
     assert not any(_alive(c) for c in children), "orphan node processes left behind"
 
 
-
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_run_in_process_composes_the_nodes_and_stops_cleanly(sig):
     """`run --in-process`: every node in the launcher's own process (no child), stopped by a
     signal with exit 0. Its topics end to end: test_bench (live, composed)."""
-    launcher = subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "run", "--in-process",
-                                 "--namespace", "/t", "--state-dir", ""],
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with _launched("--in-process", "--namespace", "/t", "--state-dir", "") as launcher:
         started = ""
         for line in launcher.stdout:
             if line.startswith("started "):
@@ -79,9 +85,6 @@ def test_run_in_process_composes_the_nodes_and_stops_cleanly(sig):
         assert _children(launcher.pid) == []
         launcher.send_signal(sig)
         launcher.wait(timeout=30)
-    finally:
-        if launcher.poll() is None:
-            launcher.kill()
     assert launcher.returncode == 0
 
 
