@@ -62,6 +62,11 @@ class _Message:
         return self._data
 
     @property
+    def as_published(self) -> Any:
+        """What the publisher handed over (its bytes, else its object), for an rclpy publisher."""
+        return self._data if self.canonical or self._obj is None else self._obj
+
+    @property
     def obj(self) -> Any:
         if self._obj is None:
             self._obj = deserialize_message(self._data, self.msg_type)
@@ -91,15 +96,15 @@ class InProcessSubscription:
     def deliver(self, message: _Message) -> None:
         self.callback(message.data if self.raw else message.obj)
 
+    def get_publisher_count(self) -> int:
+        return len(self.bus.publishers[self.topic_name])
+
 
 class _Recording(InProcessSubscription):
     """A recorder's subscription: the bytes and whether they are canonical (see ``_Message``)."""
 
     def deliver(self, message: _Message) -> None:
         self.callback((message.data, message.canonical))
-
-    def get_publisher_count(self) -> int:
-        return len(self.bus.publishers[self.topic_name])
 
 
 class _Timer:
@@ -254,6 +259,6 @@ class LiveBus(InProcessBus):
     def post(self, topic_name: str, message: _Message) -> None:
         outside = self._outside.get(topic_name)
         if outside is not None:
-            outside.publish(message.data if message._obj is None else message._obj)
+            outside.publish(message.as_published)
         super().post(topic_name, message)
 
