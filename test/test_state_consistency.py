@@ -86,9 +86,10 @@ def test_the_imus_stated_noise_keeps_the_learnt_yaw_rate_noise_honest(tmp_path):
     """Where the model is nearly exact (our simulator's car: its own model), the VB-ACKF cannot
     tell the gyro's noise from its process noise: the learnt yaw-rate noise drifts down over
     the demo drive, and with it the published variance (its sigma from 3.6e-3 to 0.7e-3 rad/s;
-    86 % of the errors within 2 sigma, 70 % in the last minute). The state node adds the IMU's
-    stated noise of each step's mean as a floor. Through the nodes, the demo drive with the
-    IMU covariance in the bag and with it zeroed (unknown, REP-145)."""
+    86 % of the errors within 2 sigma, 70 % in the last minute). The state node keeps the learnt
+    R at or above the IMU's stated noise of each step's mean (96 %; as an addition on top of
+    the learnt R it was 100 % at NEES 0.06: over-cautious). Through the nodes, the demo drive
+    with the IMU covariance in the bag and with it zeroed (unknown, REP-145)."""
     import subprocess
     import sys
 
@@ -108,7 +109,7 @@ def test_the_imus_stated_noise_keeps_the_learnt_yaw_rate_noise_honest(tmp_path):
                                     str(tmp_path / f"estimates_{name}"), "--quiet", "--in-process"],
                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             for name, source in sources.items()}      # side by side: one core each
-    within = {}
+    within, nees = {}, {}
     for name, proc in runs.items():
         output, _ = proc.communicate(timeout=900)
         assert proc.returncode == 0, output
@@ -117,5 +118,7 @@ def test_the_imus_stated_noise_keeps_the_learnt_yaw_rate_noise_honest(tmp_path):
         sel = est["t"] >= est["t"][0] + WARMUP_S
         error = est["yaw_rate"][sel] - np.interp(est["t"][sel], truth["t"], truth["yaw_rate"])
         within[name] = float(np.mean(np.abs(error) <= 2.0 * np.sqrt(est["var_yaw_rate"][sel])))
-    assert within["stated"] >= 0.95, within
-    assert within["unknown"] < 0.90, within
+        nees[name] = float(np.mean(error ** 2 / est["var_yaw_rate"][sel]))
+    assert within["stated"] >= 0.95, (within, nees)
+    assert within["unknown"] < 0.90, (within, nees)
+    assert nees["stated"] > 0.3, (within, nees)     # a floor, not a second noise on top (0.06)

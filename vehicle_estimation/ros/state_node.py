@@ -384,9 +384,13 @@ class StateNode(EstimatorNode):
         roll_noise = self._roll_ay_variance * 2.0 * self.roll_error_correlation_s * self.filter_rate
         # A filter that learns R from its residuals learns too little where its model is
         # nearly exact (a straight road: it cannot tell the yaw rate's noise from its own
-        # process noise); the IMU's stated noise of the step's mean is a floor it adds.
+        # process noise); the IMU's stated noise of the step's mean is a floor under it: what
+        # the learnt R falls short of it is added, so R is never below the sensor's own noise
+        # and a learnt R above it is not counted twice.
         floor = self._imu_noise_sum / (count * count)
         self._imu_noise_sum[:] = 0.0
+        if floor.any():
+            floor = np.maximum(floor - np.diagonal(self.core.measurement_noise), 0.0)
         self.core.set_known_noise(ax=floor[0], ay=floor[1] + roll_noise, r=floor[2])
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
