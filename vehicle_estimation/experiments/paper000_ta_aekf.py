@@ -61,9 +61,10 @@ PAPER_TABLES = {
 }
 METHODS = ("EKF", "MLP", "LSTM", "Transformer", "TA-AEKF (Alg. 1)", "TA-AEKF")
 #: Table 6 rows: label, fixed tau (NaN: Eq. 19), config overrides. The paper's Algorithm 1 is
-#: R_nn = sigma^2 without a gate; "TA-AEKF" is the core's defaults (R_nn inflated for the
-#: window overlap, innovation gate), see TaAekfConfig.
-PAPER_ALG1 = {"network_std_scale": 1.0, "network_gate_sigma": 0.0}
+#: R_nn = sigma^2 without a gate, every network output independent; "TA-AEKF" is the core's
+#: defaults (R_nn inflated for the window overlap, innovation gate, the network's lasting error
+#: as a state), see TaAekfConfig.
+PAPER_ALG1 = {"network_std_scale": 1.0, "network_gate_sigma": 0.0, "network_bias_rel_std": 0.0}
 TAU_ROWS: tuple[tuple[str, float, dict[str, float]], ...] = (
     ("tau = 1e-15", 1e-15, PAPER_ALG1), ("tau = 1", 1.0, PAPER_ALG1), ("tau = tau_k", math.nan, PAPER_ALG1),
     ("tau = tau_k, defaults", math.nan, {}))

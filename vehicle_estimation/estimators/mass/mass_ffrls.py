@@ -217,6 +217,7 @@ class FFRLSMassEstimator(ForgettingMassEstimator):
             return self._reject("nan")
         t, vx, ax, slope, brake_torque = (float(v) for v in values)
         brake_torque = max(brake_torque, 0.0)   # a magnitude; sensor noise can dip below zero
+        ax = self._calibrated_accel(t, vx, ax, accel_noise_variance)
 
         current_gear = self._gear(gear, engine_speed, vx) if finite_number(engine_torque) else None
         self.last_gear = current_gear

@@ -321,6 +321,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         if not all(finite_number(v) for v in vals):
             return self._reject("nan")
         t, vx, ax, slope = (float(v) for v in vals)
+        ax = self._calibrated_accel(t, vx, ax, accel_noise_variance)
 
         # Gear tracking runs on every finite sample so the shift hold-off sees all shifts.
         current_gear = self._gear(gear, engine_speed, vx)

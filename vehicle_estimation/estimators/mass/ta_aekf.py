@@ -136,16 +136,43 @@ class AdaptiveEKF:
     Algorithm 1: y~ = [v_x, 1/m_nn], R~ = diag(R_v, (1 - tau)/tau R_nn).
 
     ``update`` takes the network row only when given; tau -> 0 gives an infinite variance,
-    i.e. that row is dropped (the limit of the paper's law, computed without inf/NaN)."""
+    i.e. that row is dropped (the limit of the paper's law, computed without inf/NaN).
 
-    def __init__(self, x0: np.ndarray, p0: np.ndarray) -> None:
-        self.x = np.array(x0, dtype=float).reshape(2)
-        self.P = np.array(p0, dtype=float).reshape(2, 2)
+    With ``network_bias_variance`` > 0 (not in the paper) a third state b carries the
+    network's lasting error, 1/m_nn = 1/m + b + white noise: the outputs for one vehicle share
+    most of their error (a truck that is not the training truck), which the paper's
+    independent R_nn would count thousands of times. b is a first-order Gauss-Markov process
+    (``predict``'s ``bias_decay``) of that stationary variance, so the network can pull the
+    mass no closer than its own lasting accuracy while the speed dynamics observe 1/m alone;
+    without it the state is [v_x, 1/m], exactly the paper's."""
 
-    def predict(self, u: DriveInput, dt: float, q: np.ndarray, params: VehicleParams) -> None:
-        """Eqs. (22)-(23): x^- = g(x, u), P^- = A P A^T + Q (A at the prior x)."""
+    def __init__(self, x0: np.ndarray, p0: np.ndarray, network_bias_variance: float = 0.0) -> None:
+        x = np.array(x0, dtype=float).reshape(2)
+        P = np.array(p0, dtype=float).reshape(2, 2)
+        self.with_bias = network_bias_variance > 0.0
+        if self.with_bias:
+            x = np.append(x, 0.0)
+            P = np.pad(P, ((0, 1), (0, 1)))
+            P[2, 2] = network_bias_variance
+        self.x, self.P = x, P
+
+    def restart_speed(self, v: float, variance: float) -> None:
+        """v_x from a measurement, uncorrelated with the rest (a start, a gap, a stop)."""
+        self.x[0] = v
+        self.P[0, :] = self.P[:, 0] = 0.0
+        self.P[0, 0] = variance
+
+    def predict(self, u: DriveInput, dt: float, q: np.ndarray, params: VehicleParams,
+                bias_decay: float = 1.0) -> None:
+        """Eqs. (22)-(23): x^- = g(x, u), P^- = A P A^T + Q (A at the prior x); the network
+        bias, when there is one, decays by ``bias_decay`` (Q carries its driving noise)."""
         a = transition_jacobian(self.x, u, dt, params)
-        self.x = transition(self.x, u, dt, params)
+        if self.with_bias:
+            a = np.pad(a, ((0, 1), (0, 1)))
+            a[2, 2] = bias_decay
+            self.x = np.append(transition(self.x, u, dt, params), bias_decay * self.x[2])
+        else:
+            self.x = transition(self.x, u, dt, params)
         self.P = a @ self.P @ a.T + q
         self.P = 0.5 * (self.P + self.P.T)
 
@@ -153,8 +180,9 @@ class AdaptiveEKF:
                r_nn: float | None = None, tau: float | None = None, gate_sigma: float = 0.0) -> bool:
         """Eqs. (24)-(26) with Algorithm 1's adaptive R~. Returns whether the network row was
         used. ``gate_sigma`` > 0 (not in the paper) drops the network row when its innovation
-        exceeds that many standard deviations of its innovation covariance P_22 + R~_22."""
-        rows: list[int] = [0]
+        exceeds that many standard deviations of its innovation covariance H P H^T + R~_22."""
+        n = self.x.size
+        rows = [np.eye(n)[0]]
         y = [v_meas]
         r = [r_v]
         used = False
@@ -162,26 +190,26 @@ class AdaptiveEKF:
             weight = (1.0 - tau) / tau if tau > 0.0 else math.inf       # (1 - tau_k)/tau_k
             if math.isfinite(weight):
                 r_scaled = weight * r_nn
-                innovation_var = self.P[1, 1] + r_scaled
+                h_nn = np.zeros(n)
+                h_nn[1:] = 1.0                                            # 1/m (+ the bias)
+                innovation_var = float(h_nn @ self.P @ h_nn) + r_scaled
                 gated = gate_sigma > 0.0 and \
-                    (inv_mass_nn - self.x[1]) ** 2 > gate_sigma ** 2 * innovation_var
+                    (inv_mass_nn - float(h_nn @ self.x)) ** 2 > gate_sigma ** 2 * innovation_var
                 if not gated:
-                    rows.append(1)
+                    rows.append(h_nn)
                     y.append(inv_mass_nn)
                     r.append(r_scaled)
                     used = True
-        h = np.eye(2)[rows]                                               # H of Eq. (28)
+        h = np.array(rows)                                                # H of Eq. (28)
         rr = np.diag(r)
         s = h @ self.P @ h.T + rr
         k = np.linalg.solve(s.T, (self.P @ h.T).T).T                      # Eq. (24)
         innovation = np.asarray(y) - h @ self.x
         self.x = self.x + k @ innovation                                  # Eq. (25)
-        i_kh = np.eye(2) - k @ h
+        i_kh = np.eye(n) - k @ h
         self.P = i_kh @ self.P @ i_kh.T + k @ rr @ k.T                    # Eq. (26), Joseph form
         self.P = 0.5 * (self.P + self.P.T)
         return used
-
-
 
 
 def drive_force_input(params: VehicleParams, vx: float, drive_force: Any, engine_torque: Any,
@@ -235,6 +263,9 @@ class TaAekfConfig:
       their w blocks, so their errors are strongly correlated; inflating R_nn by ~w keeps
       the filter from counting the same information w times (the paper feeds every output
       with R_nn = sigma^2 and does not discuss this).
+    * ``network_bias_rel_std``, ``network_bias_time_s``: the network's lasting error as a
+      Gauss-Markov state of :class:`AdaptiveEKF`; NaN: the model's validation relative RMSE; 0:
+      none, every output independent (the paper: 10.7 % off, sigma 0.7 %, on FASTSim's truck).
     * ``accel_from_speed``: the network's a_x feature is the least-squares slope of the last
       ``accel_fit_samples`` speeds given to :meth:`TaAekfMassEstimator.step` (20 = 0.2 s at
       100 Hz), exactly how the training data defines it; False: the ``ax`` argument. The
@@ -265,6 +296,11 @@ class TaAekfConfig:
                                      "relative RMSE", low=0.0, low_open=True, allow_nan=True)
     network_std_scale: float = setting(3.0, "R_nn inflation for correlated network outputs (~sqrt(w) for "
                                        "w blocks per window)", low=0.0, low_open=True)
+    network_bias_rel_std: float = setting(
+        math.nan, "Std of the network's lasting error relative to 1/m_nn, a filter state; NaN: the model's "
+        "validation relative RMSE; 0: none, every output independent (the paper)", low=0.0, allow_nan=True)
+    network_bias_time_s: float = setting(300.0, "Correlation time of the network's lasting error [s]",
+                                         low=0.0, low_open=True)
     network_gate_sigma: float = setting(4.0, "A network output beyond this many sigma of its innovation is "
                                         "not used (0: off, Algorithm 1)", low=0.0)
     accel_from_speed: bool = setting(True, "The network's a_x feature is the slope of the last speeds (as "
@@ -346,6 +382,13 @@ class TaAekfMassEstimator:
             m0 = self.model.training_mean_mass if self.model is not None else self.params.mass
         return float(m0)
 
+    def _network_bias_rel_std(self) -> float:
+        """The network's lasting relative error (0 without a network, or switched off)."""
+        if self.model is None:
+            return 0.0
+        rel = self.config.network_bias_rel_std
+        return self.model.validation_rel_rmse if math.isnan(rel) else rel
+
     def reset(self, mass: float | None = None) -> None:
         """Restart from ``mass`` (default the configured prior) and clear all statistics."""
         m0 = self._prior_mass() if mass is None else float(mass)
@@ -353,10 +396,11 @@ class TaAekfMassEstimator:
             raise ValueError(f"reset mass must be finite and > 0, got {mass!r}")
         theta0 = 1.0 / m0
         p0 = np.diag([1.0, (self.config.initial_mass_rel_std * theta0) ** 2])
-        self.ekf = AdaptiveEKF(np.array([0.0, theta0]), p0)
+        self.ekf = AdaptiveEKF(np.array([0.0, theta0]), p0, (self._network_bias_rel_std() * theta0) ** 2)
         self.features = FeatureBlocks(self.config.inference_period_steps,
                                       self.model.spec.window if self.model is not None else 1)
         self._v_initialised = False
+        self._bias_primed = False     # the network-bias state's variance set from the first output
         self._speed_history: collections.deque[tuple[float, float]] = collections.deque(
             maxlen=self.config.accel_fit_samples)
         self._t_last = -math.inf
@@ -474,9 +518,7 @@ class TaAekfMassEstimator:
 
         if not self._v_initialised or dt > cfg.max_step_s:
             gap = self._v_initialised
-            self.ekf.x[0] = vx
-            self.ekf.P[0, 0] = cfg.velocity_noise_std ** 2
-            self.ekf.P[0, 1] = self.ekf.P[1, 0] = 0.0
+            self.ekf.restart_speed(vx, cfg.velocity_noise_std ** 2)
             self._v_initialised = True
             self.features.clear()
             return self._reject("gap") if gap else False
@@ -507,13 +549,23 @@ class TaAekfMassEstimator:
                         else self.model.validation_rel_rmse
                     rel *= cfg.network_std_scale
                     nn_obs = (1.0 / m_nn, (rel / m_nn) ** 2, tau)
+                    if self.ekf.with_bias and not self._bias_primed:
+                        # Relative to the network's own output (a prior far off would mute it).
+                        self.ekf.P[2, :] = self.ekf.P[:, 2] = 0.0
+                        self.ekf.P[2, 2] = (self._network_bias_rel_std() / m_nn) ** 2
+                        self._bias_primed = True
 
         x_before, p_before = self.ekf.x.copy(), self.ekf.P.copy()
         theta = max(float(self.ekf.x[1]), 1e-9)
-        q = np.diag([cfg.accel_noise_density ** 2 * dt, (cfg.mass_walk_rel * theta) ** 2 * dt])
+        q_diag = [cfg.accel_noise_density ** 2 * dt, (cfg.mass_walk_rel * theta) ** 2 * dt]
+        decay = 1.0
+        if self.ekf.with_bias:     # Gauss-Markov: stationary variance (rel theta)^2
+            decay = math.exp(-dt / cfg.network_bias_time_s)
+            q_diag.append((self._network_bias_rel_std() * theta) ** 2 * (1.0 - decay * decay))
+        q = np.diag(q_diag)
         u = DriveInput(force, dforce_dv, slope)
         try:
-            self.ekf.predict(u, dt, q, self.params)                       # Eqs. (22)-(23)
+            self.ekf.predict(u, dt, q, self.params, decay)                # Eqs. (22)-(23)
             if nn_obs is None:
                 self.ekf.update(vx, cfg.velocity_noise_std ** 2)          # Eqs. (24)-(26)
             elif self.ekf.update(vx, cfg.velocity_noise_std ** 2, *nn_obs,   # Algorithm 1
@@ -545,6 +597,4 @@ class TaAekfMassEstimator:
 
     def _track_speed_only(self, vx: float) -> None:
         """Outside the model's validity: follow the measured speed, keep 1/m and its variance."""
-        self.ekf.x[0] = vx
-        self.ekf.P[0, 0] = self.config.velocity_noise_std ** 2
-        self.ekf.P[0, 1] = self.ekf.P[1, 0] = 0.0
+        self.ekf.restart_speed(vx, self.config.velocity_noise_std ** 2)
