@@ -301,14 +301,14 @@ class ForgettingMassEstimator:
             return ax
         last = self._accel_t
         if math.isnan(last):
-            self._accel_t0 = t
+            self._accel_t0 = self._accel_t = t
             self._accel_mean, self._accel_var = ax, 0.0
         elif t > last:
             w = min(1.0, (t - last) / tau)
             d = ax - self._accel_mean
             self._accel_mean += w * d
             self._accel_var = (1.0 - w) * (self._accel_var + w * d * d)
-        self._accel_t = max(t, last) if math.isfinite(last) else t
+            self._accel_t = t
         if not (finite_number(noise_variance) and noise_variance > 0.0) \
                 or t - self._accel_t0 < self.calibration_warmup_s:
             return ax
