@@ -1,4 +1,4 @@
-"""Tests of the paper-000 mass networks (vehicle_estimation.estimators.mass.mass_transformer): shapes,
+"""Tests of the paper-000 mass networks (vehicle_estimation.estimators.mass.transformer.model): shapes,
 save/load without pickle, refusal of altered files, the shipped model, the estimator's network
 path, and a small smoke run of the dataset, training and comparison commands."""
 
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from vehicle_estimation.estimators.mass.mass_transformer import (
+from vehicle_estimation.estimators.mass.transformer.model import (
     MassModel, ModelSpec, TransformerMassNet, build_network)
 from vehicle_estimation.estimators.mass.ta_aekf import DEFAULT_MODEL_STEM, TaAekfConfig, TaAekfMassEstimator
-from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, fit_confidence_gaussian
+from vehicle_estimation.estimators.mass.transformer.features import NN_FEATURES, fit_confidence_gaussian
 from vehicle_estimation.contract.vehicle import load_vehicle_params
 
 torch.set_num_threads(1)

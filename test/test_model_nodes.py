@@ -72,6 +72,8 @@ def test_truck_bag_through_the_mass_node_with_ta_aekf(tmp_path):
     assert diag.get("method") == "ta_aekf"
     tau = float(diag["confidence level tau (Eq. 19)"])
     assert 0.0 < tau <= 1.0
+    # the slope node's variance reaches the filter's grade error state
+    assert 0.0 < float(diag["slope's grade error std [m/s^2]"]) < 0.5
 
 
 # ------------------------------------------------------------------ model files

@@ -624,7 +624,7 @@ def test_ta_aekf_without_network_random_inputs(fixed_tau, accel_from_speed, step
 @functools.cache
 def _shipped_mass_model():
     pytest.importorskip("torch")
-    from vehicle_estimation.estimators.mass.mass_transformer import MassModel
+    from vehicle_estimation.estimators.mass.transformer.model import MassModel
     from vehicle_estimation.estimators.mass.ta_aekf import DEFAULT_MODEL_STEM
     return MassModel.load(DEFAULT_MODEL_STEM)
 

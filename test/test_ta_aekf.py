@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vehicle_estimation.estimators.mass.ta_aekf import (
-    REJECT_REASONS, AdaptiveEKF, DriveInput, TaAekfConfig, TaAekfMassEstimator, longitudinal_accel, transition,
-    transition_jacobian)
-from vehicle_estimation.estimators.mass.ta_features import (confidence_level, fit_confidence_gaussian,
+from vehicle_estimation.estimators.mass.ta_aekf import REJECT_REASONS, TaAekfConfig, TaAekfMassEstimator
+from vehicle_estimation.estimators.mass.ta_aekf_filter import (
+    AdaptiveEKF, DriveInput, longitudinal_accel, transition, transition_jacobian)
+from vehicle_estimation.estimators.mass.transformer.features import (confidence_level, fit_confidence_gaussian,
                                                             gaussian_density, peak_density)
 from vehicle_estimation.contract.vehicle import load_vehicle_params
 
@@ -316,3 +316,80 @@ def test_a_network_bias_state_keeps_a_biased_network_from_pulling_the_mass():
         errors[bias] = (estimate / mass - 1.0, (estimate - mass) / sigma)
     assert errors[0.0][0] > 0.1 and errors[0.0][1] > 5.0          # the paper's: the network's value, overconfident
     assert abs(errors[0.26][0]) < 0.02 and abs(errors[0.26][1]) < 2.0
+
+
+def test_the_grade_error_column_of_the_jacobian_matches_central_differences():
+    x0 = np.array([18.0, 1.0 / 30000.0, 0.03])
+    u, dt = DriveInput(9000.0, 0.0, 0.01), 0.01
+    ekf = AdaptiveEKF(x0[:2], np.eye(2), grade_error=True)
+    ekf.x[2] = x0[2]
+    ekf.P = np.zeros((3, 3))
+    ekf.P[2, 2] = 1.0
+    ekf.predict(u, dt, np.zeros((3, 3)), TRUCK)
+    column = ekf.P[:, 2]                     # A P A^T with P = e_e e_e^T: A's e column
+    h = 1e-4
+    plus = transition(x0, u, dt, TRUCK, x0[2] + h)
+    minus = transition(x0, u, dt, TRUCK, x0[2] - h)
+    np.testing.assert_allclose(column[:2], (plus - minus) / (2 * h), rtol=1e-7, atol=1e-12)
+    assert column[2] == 1.0
+
+
+def test_the_grade_error_state_makes_a_biased_slope_honest_at_low_excitation():
+    """A 36 t truck cruising (force within +-0.05 g of its road load) on a slope estimate that
+    is 0.3 deg low for the whole drive, as an unobserved accelerometer bias leaves it: with the
+    slope taken as exact (the paper) the mass is far off and sure of itself; with the bias
+    variance the caller gives as a lasting grade error, the error lies within 2 sigma and the
+    mass is not flagged converged while sigma is that large."""
+    truck = TRUCK
+    mass, dt, steps = 36000.0, 0.01, 60000
+    rng = np.random.default_rng(1)
+    bias = math.radians(0.3)
+    cores = {on: TaAekfMassEstimator(truck, TaAekfConfig(use_network=False, initial_mass=28000.0,
+                                                         grade_error_state=on)) for on in (False, True)}
+    v = 22.0
+    for k in range(steps):
+        t = k * dt
+        slope = 0.01 * math.sin(2.0 * math.pi * t / 240.0)
+        drag = 0.5 * truck.air_density * truck.drag_area * v * v
+        road = truck.gravity * (truck.rolling_resistance * math.cos(slope) + math.sin(slope))
+        force = mass * (road + 0.05 * math.sin(2.0 * math.pi * t / 30.0)) + drag
+        v += longitudinal_accel(v, 1.0 / mass, DriveInput(force, 0.0, slope), truck) * dt
+        for core in cores.values():
+            core.step(t, v + rng.normal(0.0, 0.03), math.nan, slope - bias, drive_force=force,
+                      grade_error_variance=0.06 ** 2, grade_error_correlation_s=math.inf)
+    results = {on: ((c.mass - mass) / mass, (c.mass - mass) / math.sqrt(c.variance), c.converged)
+               for on, c in cores.items()}
+    assert abs(results[False][0]) > 0.05 and abs(results[False][1]) > 5.0     # the paper's: wrong and sure
+    assert abs(results[True][1]) < 2.0
+    assert abs(results[True][0]) < 0.05 or not results[True][2]
+    # without a variance from the caller the state is inert: the paper's filter to rounding
+    plain = TaAekfMassEstimator(truck, TaAekfConfig(use_network=False, initial_mass=28000.0, grade_error_state=False))
+    inert = TaAekfMassEstimator(truck, TaAekfConfig(use_network=False, initial_mass=28000.0))
+    t, v_, a, slope_, force_ = synthetic_drive(28542.0, n=1500)
+    for k in range(t.size):
+        plain.step(t[k], v_[k], a[k], slope_[k], drive_force=force_[k])
+        inert.step(t[k], v_[k], a[k], slope_[k], drive_force=force_[k])
+    assert inert.mass == pytest.approx(plain.mass, rel=1e-12)
+    assert inert.variance == pytest.approx(plain.variance, rel=1e-9)
+
+
+def test_the_grade_error_variance_rises_at_once_when_gnss_is_lost():
+    """GNSS aids the fusion (a small slope variance, 4 s), then it is lost (the unaided
+    variance, lasting): the grade error's variance is the caller's from the next sample on,
+    not after the new correlation time; the state's value is kept."""
+    est = TaAekfMassEstimator(TRUCK, TaAekfConfig(use_network=False, initial_mass=28000.0))
+    t, v, a, slope, force = synthetic_drive(28542.0, n=3000)
+    aided, unaided = 0.008 ** 2, 0.05 ** 2
+    i = est.ekf.i_grade
+    for k in range(t.size):
+        lost = k >= 2000
+        est.step(t[k], v[k], a[k], slope[k], drive_force=force[k],
+                 grade_error_variance=unaided if lost else aided,
+                 grade_error_correlation_s=math.inf if lost else 4.0)
+        if k == 1999:
+            assert est.ekf.P[i, i] <= 1.5 * aided
+            before = est.ekf.x[i]
+        if k == 2000:
+            assert est.ekf.P[i, i] >= 0.99 * unaided
+            assert abs(est.ekf.x[i] - before) < 0.01
+    assert np.all(np.linalg.eigvalsh(est.ekf.P) > 0.0)

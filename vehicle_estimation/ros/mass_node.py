@@ -19,6 +19,8 @@ Methods (parameter ``method``):
   every ``ta_aekf.inference_period_steps`` samples (10: 10 Hz, ~1 % of a core; see
   :class:`~vehicle_estimation.estimators.mass.ta_aekf.TaAekfConfig`). A model file that fails its
   checks (SHA-256, names, shapes, finiteness) stops the node naming ``ta_aekf.model_path``.
+  The slope's published variance, and whether GNSS aids the fusion, set the filter's grade
+  error state (``ta_aekf.grade_error_state``).
 
 Heading for the wind compensation of ``rls`` (``mass.wind_compensation``): the yaw of the
 fusion odometry's orientation.
@@ -152,8 +154,8 @@ class MassNode(EstimatorNode):
         self.pub_stamped = self.publisher(Vector3Stamped, topics.MASS_STAMPED)
         self.subscribe_primary(JointState, topics.POWERTRAIN, self.on_powertrain)
         self.subscribe_primary(JointState, topics.JOINT_STATES, self.on_joint_states)
-        if self.core.steps_on_windows:     # GNSS fixes say how long the regressor's bias lasts
-            self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
+        # GNSS fixes say how long the slope's and the regressor's accelerometer bias lasts.
+        self.subscribe_primary(NavSatFix, topics.GNSS, self.on_gnss)
         # The IMU (200 Hz or more) only feeds the acceleration for "imu", and "auto" without
         # wheel speeds: a node that never reads it does not pay for receiving it.
         uses_imu = self.accel_source in ("imu", "auto")
@@ -230,7 +232,9 @@ class MassNode(EstimatorNode):
             if speed is not None and (slope_ok or not self.require_slope):
                 self.core.step(t, speed, math.nan, slope_item.value if slope_ok else 0.0,
                                drive_force=pt.drive_force, engine_torque=pt.engine_torque,
-                               engine_speed=pt.engine_speed, gear=pt.gear, brake_torque=self._brake_at(t))
+                               engine_speed=pt.engine_speed, gear=pt.gear, brake_torque=self._brake_at(t),
+                               grade_error_variance=self._grade_error_variance(slope_item if slope_ok else None),
+                               grade_error_correlation_s=self.regressor_bias_correlation(t))
             self._publish_and_persist(t)
             return
         window = self.window
@@ -286,6 +290,14 @@ class MassNode(EstimatorNode):
         variance = self.bias.accel_x_variance_at(t)
         if variance is not None:
             return variance
+        if slope_item is None:
+            return math.nan
+        return (self.vehicle.gravity * math.cos(slope_item.value)) ** 2 * slope_item.variance
+
+    def _grade_error_variance(self, slope_item) -> float:
+        """Variance of the error in g sin(slope) [m^2/s^4] from the slope's own variance, for a
+        method that carries the slope's error as a state (the TA-AEKF's grade error, whose
+        correlation time :meth:`regressor_bias_correlation` gives); NaN without a slope."""
         if slope_item is None:
             return math.nan
         return (self.vehicle.gravity * math.cos(slope_item.value)) ** 2 * slope_item.variance

@@ -55,8 +55,8 @@ def train_one(kind: str, data: dict[str, np.ndarray], *, window: int, epochs: in
     """Train one network; returns the :class:`MassModel` and a history dict."""
     import torch
 
-    from vehicle_estimation.estimators.mass.mass_transformer import MassModel, ModelSpec, build_network
-    from vehicle_estimation.estimators.mass.ta_features import fit_confidence_gaussian
+    from vehicle_estimation.estimators.mass.transformer.model import MassModel, ModelSpec, build_network
+    from vehicle_estimation.estimators.mass.transformer.features import fit_confidence_gaussian
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)

@@ -41,8 +41,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig, drive_force_input
-from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, TAU_FEATURES, FeatureBlocks, eq15_features
+from vehicle_estimation.estimators.mass.ta_aekf import TaAekfConfig
+from vehicle_estimation.estimators.mass.ta_aekf_filter import drive_force_input
+from vehicle_estimation.estimators.mass.transformer.features import NN_FEATURES, TAU_FEATURES, FeatureBlocks, eq15_features
 from vehicle_estimation.contract.vehicle import VehicleParams
 
 CURB_MASS = 6042.0                                            # Table 1 [kg]

@@ -31,7 +31,7 @@ import torch
 from torch import nn
 
 from vehicle_estimation.contract.settings import check_settings, setting
-from vehicle_estimation.estimators.mass.ta_features import NN_FEATURES, TAU_FEATURES, confidence_level
+from vehicle_estimation.estimators.mass.transformer.features import NN_FEATURES, TAU_FEATURES, confidence_level
 
 KINDS = ("transformer", "mlp", "lstm")
 FORMAT_VERSION = 1

@@ -1,5 +1,5 @@
 """Paper 000's inputs: the network features of Eq. (15) in blocks, and the confidence tau of
-Eqs. (16)-(19). Shared by the TA-AEKF (``ta_aekf``), its network (``mass_transformer``) and
+Eqs. (16)-(19). Shared by the TA-AEKF (``ta_aekf``), its network (``transformer.model``) and
 the training data (``training.truck_data``), so that training and use cannot differ.
 """
 
