@@ -110,3 +110,16 @@ def test_validate_into_a_used_out_stops_with_a_message(tmp_path, used, cases):
     assert "Traceback" not in proc.stderr
     assert f"{out / used} exists" in proc.stderr and "choose another --out" in proc.stderr
     assert sorted(p.name for p in out.iterdir()) == [used]     # nothing generated
+
+
+def test_a_case_names_its_methods_from_its_own_parameter_layers():
+    """The truck cases run twice, the second with the heavy-truck layer: each row must name the
+    method that ran, the last layer that sets it winning."""
+    from vehicle_estimation.validation.validate import Case, _shipped_methods
+
+    shipped = _shipped_methods()
+    layered = _shipped_methods(("estimation", "heavy_truck_ta_aekf"))
+    assert shipped["mass"] != "ta_aekf" and layered["mass"] == "ta_aekf"
+    assert layered["road_slope"] == shipped["road_slope"] and layered["vehicle_state"] == shipped["vehicle_state"]
+    assert Case("x", "s", params_file("estimation"), params_file("estimation"), ("longitudinal",)).params == \
+        ("estimation",)
