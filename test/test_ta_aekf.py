@@ -393,3 +393,27 @@ def test_the_grade_error_variance_rises_at_once_when_gnss_is_lost():
             assert est.ekf.P[i, i] >= 0.99 * unaided
             assert abs(est.ekf.x[i] - before) < 0.01
     assert np.all(np.linalg.eigvalsh(est.ekf.P) > 0.0)
+
+
+def test_an_unknown_brake_torque_keeps_braking_out_of_the_mass():
+    """A truck that brakes hard every 20 s, on a bag with no brake torque: taken as 0, the
+    unseen brake force is read as mass; as unknown (NaN) only the samples with a positive
+    drive force are used, and the mass is right."""
+    mass, dt, n = 28542.0, 0.01, 12000
+    t = np.arange(n) * dt
+    braking = (t % 20.0) > 15.0
+    drive = np.where(braking, 0.0, 20000.0 + 12000.0 * np.sin(2 * np.pi * t / 7.0))
+    brake_force = np.where(braking, 25000.0, 0.0)
+    v = np.empty(n)
+    v[0] = 20.0
+    for k in range(n - 1):
+        a = longitudinal_accel(v[k], 1.0 / mass, DriveInput(drive[k] - brake_force[k], 0.0, 0.0), TRUCK)
+        v[k + 1] = v[k] + a * dt
+    results = {}
+    for label, brake in (("unknown", math.nan), ("taken as 0", 0.0)):
+        est = TaAekfMassEstimator(TRUCK, TaAekfConfig(use_network=False, initial_mass=20000.0))
+        for k in range(n):
+            est.step(t[k], v[k], math.nan, 0.0, drive_force=drive[k], brake_torque=brake)
+        results[label] = (est.mass / mass - 1.0, est.rejected["no_brake"])
+    assert abs(results["unknown"][0]) < 0.01 and results["unknown"][1] > 0.2 * n
+    assert abs(results["taken as 0"][0]) > 0.05 and results["taken as 0"][1] == 0

@@ -232,7 +232,8 @@ class MassNode(EstimatorNode):
             if speed is not None and (slope_ok or not self.require_slope):
                 self.core.step(t, speed, math.nan, slope_item.value if slope_ok else 0.0,
                                drive_force=pt.drive_force, engine_torque=pt.engine_torque,
-                               engine_speed=pt.engine_speed, gear=pt.gear, brake_torque=self._brake_at(t),
+                               engine_speed=pt.engine_speed, gear=pt.gear,
+                               brake_torque=self._brake_at(t, unknown=math.nan),
                                grade_error_variance=self._grade_error_variance(slope_item if slope_ok else None),
                                grade_error_correlation_s=self.regressor_bias_correlation(t))
             self._publish_and_persist(t)
@@ -302,9 +303,11 @@ class MassNode(EstimatorNode):
             return math.nan
         return (self.vehicle.gravity * math.cos(slope_item.value)) ** 2 * slope_item.variance
 
-    def _brake_at(self, t: float) -> float:
-        """Total brake torque [N m] of the latest joint_states, 0 when it is stale."""
-        return self.brake_torque if is_fresh(t, self.brake_t) else 0.0
+    def _brake_at(self, t: float, unknown: float = 0.0) -> float:
+        """Total brake torque [N m] of the latest joint_states, ``unknown`` when it is stale (the
+        windowed methods gate on a > 0 and take 0; the TA-AEKF, which steps on every sample,
+        needs to know that it does not know)."""
+        return self.brake_torque if is_fresh(t, self.brake_t) else unknown
 
     def _speed_at(self, t: float) -> float | None:
         if self.speed_source == "wheel_speed":
