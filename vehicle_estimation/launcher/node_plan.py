@@ -311,7 +311,9 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
         if have_js and any(_reported(inputs, JS, w, "effort") for w in topics.WHEEL_JOINTS):
             lines.append("brake torque from the wheels' effort")
         else:
-            lines.append("no brake torque: braking is not seen (rls may take braking samples)")
+            lines.append("no brake torque: ta_aekf uses only samples with a positive drive force"
+                         if method == "ta_aekf" else
+                         "no brake torque: braking is not seen (rls may take braking samples)")
         if force is None or speed is None or accel is None or (needs_slope and not slope_ok):
             prior += MASS_OUTPUTS
         nodes["mass"] = {"needs": "vehicle/powertrain", "method": method, "force": force, "lines": lines}

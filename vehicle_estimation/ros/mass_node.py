@@ -229,6 +229,8 @@ class MassNode(EstimatorNode):
             self.window.slope_trusted = False
         self.set_missing("vehicle speed", speed is None)
         if not self.core.steps_on_windows:
+            # every sample is a step: without a brake torque only the driving ones are used
+            self.set_missing("brake torque (joint states): driving samples only", not is_fresh(t, self.brake_t))
             if speed is not None and (slope_ok or not self.require_slope):
                 self.core.step(t, speed, math.nan, slope_item.value if slope_ok else 0.0,
                                drive_force=pt.drive_force, engine_torque=pt.engine_torque,
