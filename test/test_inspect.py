@@ -171,6 +171,7 @@ def test_mass_without_brake_torque_says_what_each_method_does(bags):
     assert "no brake torque: braking is not seen" in _node_text(summarize(bags["no_wheels"], _files(), {}), "mass")
     text = _node_text(summarize(bags["no_wheels"], _files(params_file("heavy_truck_ta_aekf")), {}), "mass")
     assert "no brake torque: ta_aekf uses only samples with a positive drive force" in text
+    assert "acceleration predicted from the force" in text
     assert "brake torque from the wheels' effort" in _node_text(
         summarize(bags["full"], _files(params_file("heavy_truck_ta_aekf")), {}), "mass")
 

@@ -289,7 +289,9 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
         else:
             speed = None
         accel_src = str(ms.get("accel_source"))
-        if accel_src in ("auto", "wheel_speed") and undriven_ok:
+        if method == "ta_aekf":       # it predicts a_x from the force (Eq. 14) and fits it to the speed
+            accel = "acceleration predicted from the force, checked against the speed"
+        elif accel_src in ("auto", "wheel_speed") and undriven_ok:
             accel = "acceleration from the undriven wheels"
         elif accel_src == "wheel_speed":
             accel = None
