@@ -230,12 +230,12 @@ class MassNode(EstimatorNode):
         self.set_missing("vehicle speed", speed is None)
         if not self.core.steps_on_windows:
             # every sample is a step: without a brake torque only the driving ones are used
-            self.set_missing("brake torque (joint states): driving samples only", not is_fresh(t, self.brake_t))
+            brake = self._brake_at(t, unknown=math.nan)
+            self.set_missing("brake torque (joint states): driving samples only", math.isnan(brake))
             if speed is not None and (slope_ok or not self.require_slope):
                 self.core.step(t, speed, math.nan, slope_item.value if slope_ok else 0.0,
                                drive_force=pt.drive_force, engine_torque=pt.engine_torque,
-                               engine_speed=pt.engine_speed, gear=pt.gear,
-                               brake_torque=self._brake_at(t, unknown=math.nan),
+                               engine_speed=pt.engine_speed, gear=pt.gear, brake_torque=brake,
                                grade_error_variance=self._grade_error_variance(slope_item if slope_ok else None),
                                grade_error_correlation_s=self.regressor_bias_correlation(t))
             self._publish_and_persist(t)
@@ -291,11 +291,7 @@ class MassNode(EstimatorNode):
         variance (in the slope and the IMU acceleration alike), else, without the fusion,
         the slope's whole variance as if it were all lasting."""
         variance = self.bias.accel_x_variance_at(t)
-        if variance is not None:
-            return variance
-        if slope_item is None:
-            return math.nan
-        return (self.vehicle.gravity * math.cos(slope_item.value)) ** 2 * slope_item.variance
+        return variance if variance is not None else self._grade_error_variance(slope_item)
 
     def _grade_error_variance(self, slope_item) -> float:
         """Variance of the error in g sin(slope) [m^2/s^4] from the slope's own variance, for a

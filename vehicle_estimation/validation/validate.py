@@ -285,17 +285,13 @@ def longitudinal_rows(case: Case, est: dict, vehicle: VehicleParams, mass_method
 
 # ------------------------------------------------------------------------------------ run
 def _shipped_methods(params: Sequence[str] = ("estimation",)) -> dict[str, str]:
-    """Each node's method under the parameter files ``params`` layered in order."""
-    import yaml
-    methods = {"vehicle_state": "?", "mass": "?", "road_slope": "?"}
-    keys = {"vehicle_state": "filter", "mass": "method", "road_slope": "method"}
-    for name in params:
-        data = yaml.safe_load(params_file(name).read_text(encoding="utf-8")) or {}
-        for node, key in keys.items():
-            value = data.get(node, {}).get("ros__parameters", {}).get(key)
-            if value is not None:
-                methods[node] = str(value)
-    return methods
+    """Each node's method under the parameter files ``params`` layered in order, as the nodes
+    read them (``/**`` and the node's section; the node's default where no file sets it)."""
+    from vehicle_estimation.launcher.node_plan import layered_params
+
+    layered = layered_params([params_file(name) for name in params])
+    return {node: str(layered[node][key])
+            for node, key in (("vehicle_state", "filter"), ("mass", "method"), ("road_slope", "method"))}
 
 
 def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases: Sequence[str] | None = None,
