@@ -260,7 +260,7 @@ class TaAekfMassEstimator:
         p0 = np.diag([1.0, (self.config.initial_mass_rel_std * theta0) ** 2])
         self.ekf = AdaptiveEKF(np.array([0.0, theta0]), p0, (self._network_bias_rel_std() * theta0) ** 2,
                                grade_error=self.config.grade_error_state)
-        self._grade_variance = 0.0    # the grade error's variance the caller last gave
+        self._grade_variance = 0.0    # the lasting grade error's variance so far (cap infinite)
         self._grade_t = -math.inf     # the grade error state's last prediction
         self._grade_tau: float | None = None   # its correlation time then
         self.features = FeatureBlocks(self.config.inference_period_steps,
@@ -492,7 +492,6 @@ class TaAekfMassEstimator:
             self.ekf.add_grade_variance(var - self._grade_variance)
             self._grade_variance = max(var, self._grade_variance)
             return 1.0, 0.0
-        self._grade_variance = var
         decay = math.exp(-elapsed / tau) if tau > 0.0 else 0.0
         return decay, var * (1.0 - decay * decay)
 
