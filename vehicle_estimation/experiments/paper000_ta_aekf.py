@@ -68,7 +68,7 @@ METHODS = ("EKF", "MLP", "LSTM", "Transformer", "TA-AEKF (Alg. 1)", "TA-AEKF")
 #: defaults (R_nn inflated for the window overlap, innovation gate, the network's lasting error
 #: as a state), see TaAekfConfig.
 PAPER_ALG1 = {"network_std_scale": 1.0, "network_gate_sigma": 0.0, "network_bias_rel_std": 0.0,
-              "grade_error_state": False}
+              "grade_error_state": False, "network_input_max_z": 0.0}
 #: The paper's "EKF" row: the filter alone, the slope taken as exact.
 PAPER_EKF = {"use_network": False, "grade_error_state": False}
 TAU_ROWS: tuple[tuple[str, float, dict[str, float]], ...] = (
@@ -108,11 +108,16 @@ def run_filter(params: Any, signals: dict[str, np.ndarray], config: Any, model: 
         mass[k] = est.mass
         tau[k] = est.last_tau
         nn[k] = est.last_network_mass
-    return {"mass": mass, "tau": tau, "nn": nn, "rejected": est.rejected}
+    return {"mass": mass, "tau": tau, "nn": nn, "rejected": est.rejected,
+            "network_outputs": est.network_updates + est.network_gated + est.network_out_of_domain,
+            "network_out_of_domain": est.network_out_of_domain}
 
 
-def run_network_alone(params: Any, signals: dict[str, np.ndarray], model: Any) -> np.ndarray:
-    """The network's mass at every sample (latest full window, held; NaN before the first)."""
+def run_network_alone(params: Any, signals: dict[str, np.ndarray], model: Any,
+                      slope_error: tuple[float, float] = (math.nan, math.inf)) -> np.ndarray:
+    """The network's mass at every sample (latest full window, held; NaN before the first);
+    a network with a slope-error input is told the slope's stated error, as the TA-AEKF tells it."""
+    from vehicle_estimation.estimators.mass.ta_aekf import slope_error_deg
     from vehicle_estimation.training.truck_data import feature_blocks, windows_of
 
     nn_blocks, _, segment, end = feature_blocks(signals, params, model.spec.block_steps)
@@ -120,7 +125,7 @@ def run_network_alone(params: Any, signals: dict[str, np.ndarray], model: Any) -
     out = np.full(signals["t"].size, np.nan)
     if windows.shape[0] == 0:
         return out
-    pred = model.predict(windows)
+    pred = model.predict(windows, slope_error_deg(slope_error[0], params.gravity))
     at = end[last]
     idx = np.searchsorted(at, np.arange(out.size), side="right") - 1
     ok = idx >= 0
@@ -203,7 +208,7 @@ def evaluate_drives(params: Any, drives: dict[str, dict[str, np.ndarray]], model
         ser: dict[str, Any] = {}
         ser["EKF"] = run_filter(params, sig, dataclasses.replace(base, **PAPER_EKF))["mass"]
         for kind, label in (("mlp", "MLP"), ("lstm", "LSTM"), ("transformer", "Transformer")):
-            ser[label] = run_network_alone(params, sig, models[kind])
+            ser[label] = run_network_alone(params, sig, models[kind], slope_error)
         ser["tau"] = np.full(sig["t"].size, np.nan)
         for label, tau, overrides in TAU_ROWS:
             res = run_filter(params, sig, dataclasses.replace(base, fixed_tau=tau, **overrides),
@@ -221,6 +226,48 @@ def evaluate_drives(params: Any, drives: dict[str, dict[str, np.ndarray]], model
     names = list(drives)
     avg = {label: average([per_drive[d][label] for d in names]) for label in (*METHODS, *(r[0] for r in TAU_ROWS))}
     return {"per_drive": per_drive, "average": avg, "series": series}
+
+
+#: Window lengths [blocks] of the information floor: the paper's 1 s and the shipped transformer's.
+FLOOR_WINDOWS = (10, 30)
+
+
+def window_information_floor(params: Any, drives: dict[str, dict[str, np.ndarray]], block_steps: int,
+                             block_s: float) -> dict[str, float]:
+    """What the Eq. (15) inputs of one window can tell of the mass, whatever the network: MAPE [%]
+    over every window of ``drives`` (a name -> signals dict) of (a) least squares on Eq. (14)
+    within the window, m = sum F phi / sum phi^2 (F = F_t - F_w, phi = delta a + G), and (b) the
+    window's integral estimate 1/m (``features.window_features``, no differentiated speed), for
+    each of :data:`FLOOR_WINDOWS`. Keys ``least_squares_<w>``, ``integral_<w>``."""
+    from vehicle_estimation.estimators.mass.transformer.features import window_features
+    from vehicle_estimation.training import truck_data as td
+
+    out: dict[str, float] = {}
+    blocks = {name: td.feature_blocks(sig, params, block_steps) for name, sig in drives.items()}
+    for w in FLOOR_WINDOWS:
+        ls, integral = [], []
+        for name, (nn, _, segment, _) in blocks.items():
+            windows, _ = td.windows_of(nn, segment, w)
+            if windows.shape[0] == 0:
+                continue
+            truth = float(drives[name]["mass"][0])
+            force, phi = windows[..., 0] - windows[..., 1], windows[..., 2] + windows[..., 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ls.append(np.abs((force * phi).sum(axis=1) / (phi * phi).sum(axis=1) - truth) / truth)
+                integral.append(np.abs(1e4 / window_features(windows, block_s)[:, 0] - truth) / truth)
+        for key, errors in (("least_squares", ls), ("integral", integral)):
+            e = np.concatenate(errors) if errors else np.zeros(0)
+            out[f"{key}_{w}"] = float(100.0 * np.nanmean(e)) if e.size else math.nan
+    return out
+
+
+def with_true_acceleration(signals: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The drive with the true speed and its exact derivative in place of the wheel speed and
+    its 0.2 s fit (the a_x a noise-free simulator would give a network)."""
+    out = dict(signals)
+    out["vx"] = signals["vx_true"]
+    out["ax"] = np.gradient(signals["vx_true"], signals["t"])
+    return out
 
 
 def make_drive(params: Any, slope: Any, mass: float, seed: int, slope_noise_deg: float,
@@ -312,12 +359,31 @@ def main(args: argparse.Namespace) -> int:
 
     if not args.no_clean:
         print("[2/3] the same drives with an error-free slope input")
-        clean = evaluate_drives(truck, drives_for(0.0), models, prior, truth, progress)
+        clean_drives = drives_for(0.0)
+        clean = evaluate_drives(truck, clean_drives, models, prior, truth, progress)
         result["clean_slope"] = {k: v for k, v in clean.items() if k != "series"}
         text.append(table("Table 4 with an error-free slope input (the paper's simulated setting)",
                           {m: clean["average"][m] for m in METHODS}, PAPER_TABLES["average"]))
         text.append(table("Table 6 with an error-free slope input",
                           {r[0]: clean["average"][r[0]] for r in TAU_ROWS}, PAPER_TABLES["table6"]))
+        # What a window of these inputs can tell, beside what the networks make of it.
+        spec = models["transformer"].spec
+        settings = {f"{args.slope_noise_deg:g} deg slope error": (noisy_drives, main_res),
+                    "error-free slope": (clean_drives, clean),
+                    "error-free slope, true a_x": ({k: with_true_acceleration(v) for k, v in clean_drives.items()}, None)}
+        floor = {label: window_information_floor(truck, d, spec.block_steps, spec.block_s)
+                 | ({"transformer": res["average"]["Transformer"]["mape"]} if res else {})
+                 for label, (d, res) in settings.items()}
+        result["window_information_floor"] = floor
+        lines = ["### What one window of the Eq. (15) inputs can tell (MAPE %, every window of test1 & test2)",
+                 "", "| inputs | least squares 1 s | least squares 3 s | integral 1 s | integral 3 s | "
+                 f"transformer alone ({spec.window * spec.block_s:g} s) |", "| --- | ---: | ---: | ---: | ---: | ---: |"]
+        for label, row in floor.items():
+            cells = [row[f"{k}_{w}"] for w in FLOOR_WINDOWS for k in ("least_squares",)] + \
+                    [row[f"integral_{w}"] for w in FLOOR_WINDOWS]
+            nn = f"{row['transformer']:.2f}" if "transformer" in row else "–"
+            lines.append(f"| {label} | " + " | ".join(f"{c:.2f}" for c in cells) + f" | {nn} |")
+        text.append("\n".join(lines) + "\n")
 
     if not args.no_ood:
         print("[3/3] out of distribution: 48 t truck, sedan")
@@ -336,23 +402,31 @@ def main(args: argparse.Namespace) -> int:
             ta_res = run_filter(params, sig, base, models["transformer"], slope_error)
             alg1 = run_filter(params, sig, dataclasses.replace(base, **PAPER_ALG1), models["transformer"])
             ekf = run_filter(params, sig, dataclasses.replace(base, **PAPER_EKF))["mass"]
-            nn = run_network_alone(params, sig, models["transformer"])
+            nn = run_network_alone(params, sig, models["transformer"], slope_error)
             tau = ta_res["tau"]
-            ood_rows[label] = {"mass_kg": mass, "initial_mass_kg": m0, "mean_tau": float(np.nanmean(tau)),
-                               "median_tau": float(np.nanmedian(tau)),
-                               "share_tau_below_1e-3": float(np.nanmean(tau < 1e-3)),
+            used = np.isfinite(tau)      # NaN: before the first output, or an output outside the training data
+            ood_rows[label] = {"mass_kg": mass, "initial_mass_kg": m0,
+                               "mean_tau": float(np.mean(tau[used])) if used.any() else math.nan,
+                               "median_tau": float(np.median(tau[used])) if used.any() else math.nan,
+                               "share_tau_below_1e-3": float(np.mean(tau[used] < 1e-3)) if used.any() else math.nan,
+                               "share_outside_training_data": ta_res["network_out_of_domain"]
+                               / max(ta_res["network_outputs"], 1),
                                "TA-AEKF": scores(ta_res["mass"], mass),
                                "TA-AEKF (Alg. 1)": scores(alg1["mass"], mass), "EKF": scores(ekf, mass),
                                "Transformer": scores(nn, mass)}
             ood_series[label] = {"tau": tau, "ta": ta_res["mass"] / mass, "alg1": alg1["mass"] / mass}
         result["ood"] = ood_rows
         lines = ["### Out of distribution (test1 road, TA-AEKF with the adaptive tau)", "",
-                 "| case | true mass kg | mean tau | median tau | tau < 1e-3 | TA-AEKF MAPE % | TA-AEKF (Alg. 1) MAPE % "
-                 "| EKF MAPE % | Transformer MAPE % |",
-                 "|---|---|---|---|---|---|---|---|---|"]
+                 "| case | true mass kg | outputs outside the training data | mean tau | median tau | tau < 1e-3 "
+                 "| TA-AEKF MAPE % | TA-AEKF (Alg. 1) MAPE % | EKF MAPE % | Transformer MAPE % |",
+                 "|---|---|---|---|---|---|---|---|---|---|"]
+
+        def fmt(value: float, spec: str) -> str:
+            return "–" if math.isnan(value) else format(value, spec)
         for label, r in ood_rows.items():
-            lines.append(f"| {label} | {r['mass_kg']:.0f} | {r['mean_tau']:.3g} | {r['median_tau']:.3g} | "
-                         f"{100 * r['share_tau_below_1e-3']:.0f} % | {r['TA-AEKF']['mape']:.2f} | "
+            lines.append(f"| {label} | {r['mass_kg']:.0f} | {100 * r['share_outside_training_data']:.0f} % | "
+                         f"{fmt(r['mean_tau'], '.3g')} | {fmt(r['median_tau'], '.3g')} | "
+                         f"{fmt(100 * r['share_tau_below_1e-3'], '.0f')} % | {r['TA-AEKF']['mape']:.2f} | "
                          f"{r['TA-AEKF (Alg. 1)']['mape']:.2f} | "
                          f"{r['EKF']['mape']:.2f} | {r['Transformer']['mape']:.2f} |")
         text.append("\n".join(lines))

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m vehicle_estimation.training.truck_data [--out out/truck_data] [--repeats 1]
+    python -m vehicle_estimation.training.truck_data [--out out/truck_data] [--repeats 1] [--slope-noise-deg 0.3,0]
 
 The heavy truck of Table 1 (``params/heavy_truck.yaml``: curb 6042 kg, 6.8 m^2, eta 0.99) with
 payloads 4000-40,000 kg in 4000 kg steps (10 gross masses, 10,042-46,042 kg), on each of the
@@ -10,7 +10,9 @@ five training slope profiles of :data:`TRAIN_SLOPES` (Fig. 5a), all on the HWFET
 profile (Fig. 5b), 100 s each at 0.01 s (Table 1): 50 drives. Split 6:2:2 (Sec. 4) *by drive*
 (windows of one drive overlap, so a split by window would leak): per payload, three slope
 profiles train, one validates and one tests, rotated over the payloads, so every mass is in
-every split. Writes ``dataset.npz`` (no pickle) with the block features of every drive.
+every split. Each drive is written once per slope error of ``--slope-noise-deg`` (default 0.3 deg
+and 0, the paper's error-free setting; the same simulation and sensor noise), 100 drives in all.
+Writes ``dataset.npz`` (no pickle) with the block features of every drive.
 
 Choices the paper leaves open (ASSUMPTIONS):
 
@@ -25,7 +27,8 @@ Choices the paper leaves open (ASSUMPTIONS):
   noise per wheel); a_x = least-squares slope of that speed over the last 0.2 s (causal);
   drive force, engine torque/speed and gear from ``powertrain`` (CAN, 2 N m torque noise);
   brake torque from ``joint_states``; slope = true slope + first-order Gauss-Markov error of
-  0.3 deg RMS with a 2 s correlation time, like the slope observer's error.
+  0.3 deg RMS with a 2 s correlation time, like the slope observer's error (and the same drive
+  with an exact slope).
 """
 
 from __future__ import annotations
@@ -52,6 +55,9 @@ TEST_GROSS_MASS = 28542.0                                     # Sec. 3 [kg]
 DURATION_S = 100.0                                            # Sec. 3
 HWFET_OFFSET_S = 5
 SLOPE_NOISE_DEG = 0.3
+#: The slope errors [deg RMS] of the dataset: each drive once per level (the same simulation and
+#: sensor noise). 0.3 deg is what the slope node's estimate carries; 0 is the paper's setting.
+SLOPE_NOISE_LEVELS = (SLOPE_NOISE_DEG, 0.0)
 SLOPE_NOISE_TAU_S = 2.0
 ACCEL_FIT_S = 0.2
 MIN_SPEED = 1.0
@@ -217,18 +223,19 @@ def split_of(payload_index: int, slope_index: int, n_slopes: int = len(TRAIN_SLO
 
 def generate(block_steps: int = 10, repeats: int = 1, payloads: tuple[float, ...] = PAYLOADS,
              slopes: tuple[SlopeProfile, ...] = TRAIN_SLOPES, duration_s: float = DURATION_S,
-             progress: bool = True) -> dict[str, np.ndarray]:
-    """Simulate every (payload, slope profile, repeat) drive and return the block features.
+             progress: bool = True, slope_noise_deg: tuple[float, ...] = SLOPE_NOISE_LEVELS) -> dict[str, np.ndarray]:
+    """Simulate every (payload, slope profile, repeat) drive and return the block features,
+    once per slope error of ``slope_noise_deg`` (the same simulation and sensor noise).
 
     Arrays: ``nn`` (K, 5), ``tau`` (K, 4), ``segment`` (K,) globally unique, ``drive`` (K,)
     drive index; per drive: ``drive_mass``, ``drive_split`` (0 train, 1 val, 2 test),
-    ``drive_payload_index``, ``drive_slope_index``, ``drive_repeat``."""
+    ``drive_payload_index``, ``drive_slope_index``, ``drive_repeat``, ``drive_slope_noise_deg``."""
     from vehicle_estimation.sim import load_vehicle, simulate
 
     truck = load_vehicle("heavy_truck")
     nn_all, tau_all, seg_all, drive_all = [], [], [], []
     meta: dict[str, list[Any]] = {"drive_mass": [], "drive_split": [], "drive_payload_index": [],
-                                  "drive_slope_index": [], "drive_repeat": []}
+                                  "drive_slope_index": [], "drive_repeat": [], "drive_slope_noise_deg": []}
     seg_offset = 0
     total = len(payloads) * len(slopes) * repeats
     # Drawn on a terminal only (disable=None): a log gets no frames.
@@ -240,19 +247,21 @@ def generate(block_steps: int = 10, repeats: int = 1, payloads: tuple[float, ...
                 mass = CURB_MASS + payload
                 profile = dataclasses.replace(slope, seed=slope.seed + 1000 * rep)
                 result = simulate(make_scenario(mass, profile, truck, duration_s))
-                sig = drive_signals(result, seed=10_000 * rep + 100 * i + j)
-                nn, tau, seg, _ = feature_blocks(sig, result.scenario.vehicle, block_steps)
-                nn_all.append(nn)
-                tau_all.append(tau)
-                seg_all.append(seg + seg_offset)
-                seg_offset += int(seg.max(initial=0)) + 1
-                drive_all.append(np.full(nn.shape[0], d, dtype=np.int64))
-                meta["drive_mass"].append(mass)
-                meta["drive_split"].append(("train", "val", "test").index(split_of(i, j, len(slopes))))
-                meta["drive_payload_index"].append(i)
-                meta["drive_slope_index"].append(j)
-                meta["drive_repeat"].append(rep)
-                d += 1
+                for noise in slope_noise_deg:
+                    sig = drive_signals(result, seed=10_000 * rep + 100 * i + j, slope_noise_deg=noise)
+                    nn, tau, seg, _ = feature_blocks(sig, result.scenario.vehicle, block_steps)
+                    nn_all.append(nn)
+                    tau_all.append(tau)
+                    seg_all.append(seg + seg_offset)
+                    seg_offset += int(seg.max(initial=0)) + 1
+                    drive_all.append(np.full(nn.shape[0], d, dtype=np.int64))
+                    meta["drive_mass"].append(mass)
+                    meta["drive_split"].append(("train", "val", "test").index(split_of(i, j, len(slopes))))
+                    meta["drive_payload_index"].append(i)
+                    meta["drive_slope_index"].append(j)
+                    meta["drive_repeat"].append(rep)
+                    meta["drive_slope_noise_deg"].append(float(noise))
+                    d += 1
                 bar.set_postfix_str(f"{slope.name} {mass:.0f} kg, {nn.shape[0]} blocks", refresh=False)
                 bar.update()
     bar.close()
@@ -271,7 +280,21 @@ def save_dataset(data: dict[str, np.ndarray], path: Path) -> Path:
 
 def load_dataset(path: Path) -> dict[str, np.ndarray]:
     with np.load(path, allow_pickle=False) as f:
-        return {k: f[k] for k in f.files}
+        data = {k: f[k] for k in f.files}
+    if "drive_slope_noise_deg" not in data:     # a dataset from before the slope-error levels
+        data["drive_slope_noise_deg"] = np.full(data["drive_mass"].shape, SLOPE_NOISE_DEG)
+    return data
+
+
+def parse_levels(text: str) -> tuple[float, ...]:
+    """``"0.3,0"`` -> (0.3, 0.0): slope errors [deg RMS], each finite and >= 0."""
+    try:
+        levels = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"--slope-noise-deg: not a comma-separated list of numbers: {text!r}") from None
+    if not levels or not all(math.isfinite(v) and v >= 0.0 for v in levels):
+        raise ValueError(f"--slope-noise-deg: give one or more finite values >= 0, got {text!r}")
+    return levels
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -282,13 +305,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=DURATION_S, help="drive length [s]")
     p.add_argument("--payloads", type=int, default=len(PAYLOADS),
                    help="use only the first N payloads (quick runs)")
+    p.add_argument("--slope-noise-deg", default=",".join(f"{v:g}" for v in SLOPE_NOISE_LEVELS),
+                   help="slope errors [deg RMS]: every drive once per value")
     p.add_argument("--quiet", action="store_true")
 
 
 def main(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     data = generate(args.block_steps, args.repeats, PAYLOADS[:args.payloads], duration_s=args.duration,
-                    progress=not args.quiet)
+                    progress=not args.quiet, slope_noise_deg=parse_levels(args.slope_noise_deg))
     path = save_dataset(data, Path(args.out) / "dataset.npz")
     split = data["drive_split"]
     print(f"{len(split)} drives (train {int(np.sum(split == 0))}, val {int(np.sum(split == 1))}, "

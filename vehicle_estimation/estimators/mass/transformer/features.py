@@ -17,6 +17,18 @@ TAU_FEATURES = ("F_t", "a_x", "v_x", "alpha")
 #: Names of the network input features of Eq. (15): F_t [N], F_w [N], delta a_x [m/s^2],
 #: (f cos(alpha) + sin(alpha)) g [m/s^2], v_x [km/h] (the paper's unit).
 NN_FEATURES = ("F_t", "F_w", "delta_a_x", "g_f_cos_plus_sin", "v_x_kmh")
+#: Window-level inputs beside Eq. (15) (``ModelSpec.window_features``; not in the paper), appended
+#: to every block of a window: two estimates of the inverse mass 1/m [1/(10 t)] from Eq. (14)
+#: over the window, the speed gain plus integrated grade [m/s] and the RMS of delta a_x + grade
+#: [m/s^2] they rest on, and the mean net force [10 kN]. See :func:`window_features`.
+WINDOW_FEATURES = ("inverse_mass_integral", "inverse_mass_regression", "speed_gain_plus_grade",
+                   "rms_acceleration_demand", "mean_net_force")
+#: The stated RMS error of the slope input [deg] (``ModelSpec.slope_error_input``), appended to
+#: every block: one network for an exact slope (the paper's setting) and for a slope estimate.
+SLOPE_ERROR_FEATURE = "slope_error_deg"
+#: 1/m is given in 1/(10 t) and clipped to +-INVERSE_MASS_CLIP (a window without drive force).
+_INVERSE_MASS_UNIT = 1.0e4
+INVERSE_MASS_CLIP = 5.0
 
 
 # --------------------------------------------------------------------- tau, Eqs. (16)-(19)
@@ -73,6 +85,34 @@ def eq15_features(force: float, v: float, ax: float, slope: float, params: Vehic
     drag = 0.5 * p.air_density * p.drag_area * v * abs(v)
     grade = p.gravity * (p.rolling_resistance * math.cos(slope) + math.sin(slope))
     return (force, drag, delta * ax, grade, 3.6 * v)
+
+
+def window_features(windows: np.ndarray, block_s: float) -> np.ndarray:
+    """:data:`WINDOW_FEATURES` of raw Eq. (15) windows (B, w, 5) whose blocks are ``block_s``
+    apart: (B, 5).
+
+    Eq. (14) over a window, m (delta a + G) = F_t - F_w with G = g (f cos alpha + sin alpha),
+    integrated between the first and the last block: m (v_w - v_1 + int G dt) = int (F_t - F_w) dt.
+    The integral needs no differentiated speed (a_x of a wheel speed is the noisiest input:
+    with it, least squares over a 1 s window of error-free data is 10 % off, with the true
+    a_x 4 %), and it is written for 1/m, with the noisy speed and grade in the numerator and the
+    well-measured force in the denominator: bounded where the excitation is small, and without
+    the errors-in-variables bias a regression for m would have. The second estimate regresses
+    delta a + G on F block by block (1/m = sum F phi / sum F^2)."""
+    w = np.asarray(windows, dtype=float)
+    force = w[..., 0] - w[..., 1]
+    grade, demand = w[..., 3], w[..., 2] + w[..., 3]
+    speed = w[..., 4] / 3.6
+    force_integral = block_s * 0.5 * (force[:, 1:] + force[:, :-1]).sum(axis=1)
+    gain = speed[:, -1] - speed[:, 0] + block_s * 0.5 * (grade[:, 1:] + grade[:, :-1]).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse_integral = gain / force_integral * _INVERSE_MASS_UNIT
+        inverse_regression = (force * demand).sum(axis=1) / (force * force).sum(axis=1) * _INVERSE_MASS_UNIT
+    span = max(w.shape[1] - 1, 1) * block_s
+    out = np.stack([inverse_integral, inverse_regression, gain, np.sqrt(np.mean(demand * demand, axis=1)),
+                    force_integral / span / _INVERSE_MASS_UNIT], axis=1)
+    out[:, :2] = np.clip(np.nan_to_num(out[:, :2], nan=0.0), -INVERSE_MASS_CLIP, INVERSE_MASS_CLIP)
+    return out
 
 
 class FeatureBlocks:
