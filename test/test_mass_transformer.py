@@ -205,9 +205,14 @@ def test_commands_smoke(tmp_path, capsys):
     parser = argparse.ArgumentParser()
     paper000.add_arguments(parser)
     args = parser.parse_args(["--out", str(tmp_path / "out"), "--models", str(tmp_path), "--duration", "6",
-                              "--no-clean", "--quiet"])
+                              "--quiet"])
     assert paper000.main(args) == 0
     doc = json.loads((tmp_path / "out" / "comparison.json").read_text())
+    floor = doc["window_information_floor"]
+    assert set(floor) == {"0.3 deg slope error", "error-free slope", "error-free slope, true a_x"}
+    assert all(math.isfinite(floor[k]["least_squares_10"]) for k in floor)
+    # what a window can tell: the exact inputs tell more than the noisy ones
+    assert floor["error-free slope, true a_x"]["least_squares_10"] < floor["0.3 deg slope error"]["least_squares_10"]
     assert set(doc["main"]["average"]) >= {"EKF", "MLP", "LSTM", "Transformer", "TA-AEKF", "TA-AEKF (Alg. 1)", "tau = 1"}
     assert set(doc["ood"]) == {"truck 28.5 t (in range)", "truck 48 t", "truck 60 t", "sedan (paper 004)"}
     assert (tmp_path / "out" / "test1.png").is_file() and (tmp_path / "out" / "ood.png").is_file()
@@ -368,3 +373,23 @@ def test_the_shipped_transformer_alone_is_within_5_percent_with_an_exact_slope()
     noisy = paper000.make_drive(truck, td.TEST_SLOPES[0], td.TEST_GROSS_MASS, 900, 0.3, duration_s=60.0)
     told = paper000.run_network_alone(truck, noisy, model, paper000.slope_error_statistics(0.3, truck.gravity))
     assert 100.0 * np.nanmean(np.abs(told / td.TEST_GROSS_MASS - 1.0)) < 25.0
+
+
+@pytest.mark.parametrize("kind", ["transformer", "mlp", "lstm"])
+def test_the_training_command_defaults_are_what_the_shipped_models_were_trained_with(kind):
+    """`train-mass-transformer` without options must rebuild the shipped files: same spec, epochs
+    and slope errors (the weights themselves were checked by re-running it, see the README)."""
+    from vehicle_estimation.training import train_mass_transformer as trainer
+    from vehicle_estimation.training import truck_data
+
+    model = MassModel.load(DEFAULT_MODEL_STEM.parent / f"mass_{kind}")
+    parser = argparse.ArgumentParser()
+    trainer.add_arguments(parser)
+    args = parser.parse_args([])
+    defaults = trainer.KIND_DEFAULTS[kind]
+    assert model.spec.window == defaults["window"]
+    assert model.spec.window_features == defaults["window_features"]
+    assert model.spec.slope_error_input == defaults["slope_error_input"]
+    assert model.metadata["epochs"] == args.epochs and model.metadata["seed"] == args.seed
+    levels = truck_data.SLOPE_NOISE_LEVELS if model.spec.slope_error_input else (truck_data.SLOPE_NOISE_DEG,)
+    assert sorted(model.metadata["slope_noise_deg"]) == sorted(levels)

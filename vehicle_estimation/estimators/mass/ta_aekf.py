@@ -65,6 +65,7 @@ from vehicle_estimation.estimators.mass.ta_aekf_filter import AdaptiveEKF, Drive
 from vehicle_estimation.estimators.mass.transformer.features import FeatureBlocks, eq15_features
 from vehicle_estimation.paths import MODELS_DIR
 
+
 def slope_error_deg(grade_error_variance: float, gravity: float) -> float:
     """The slope's RMS error [deg] that a grade-error variance [m^2/s^4] of g sin(slope) stands
     for (a network told the slope's error takes it); 0 when none is given (an exact slope)."""
