@@ -169,12 +169,12 @@ def test_estimator_runs_the_network_every_block_on_the_feature_windows(monkeypat
     # the core derives a_x from vx (accel_from_speed): the dataset's definition
     sig["ax"] = td.causal_slope(t, sig["vx"], td.ACCEL_FIT_S)
     seen = []
-    original = model.predict
+    original = model.predict_with_input_distance
 
     def spy(windows, slope_error_deg=0.0):
         seen.append(np.array(windows[0]))
         return original(windows, slope_error_deg)
-    monkeypatch.setattr(model, "predict", spy)
+    monkeypatch.setattr(model, "predict_with_input_distance", spy)
     res = run_filter(TRUCK, sig, TaAekfConfig(inference_period_steps=5, initial_mass=6042.0), model)
     blocks, _, segment, _ = td.feature_blocks(sig, TRUCK, 5)
     expected, _ = td.windows_of(blocks, segment, 6)
@@ -316,8 +316,8 @@ def test_the_estimator_tells_the_network_the_slope_error_it_is_given(monkeypatch
     assert ta_aekf.slope_error_deg((9.81 * math.sin(math.radians(0.3))) ** 2, 9.81) == pytest.approx(0.3)
     model = tiny_model(window=6, block_steps=5)
     seen = []
-    real = model.predict
-    monkeypatch.setattr(model, "predict", lambda w, s=0.0: seen.append(s) or real(w, s))
+    real = model.predict_with_input_distance
+    monkeypatch.setattr(model, "predict_with_input_distance", lambda w, s=0.0: seen.append(s) or real(w, s))
     est = TaAekfMassEstimator(TRUCK, TaAekfConfig(inference_period_steps=5, initial_mass=20000.0), model=model)
     variance = (TRUCK.gravity * math.sin(math.radians(0.2))) ** 2
     for k in range(200):

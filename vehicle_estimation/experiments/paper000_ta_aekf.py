@@ -239,7 +239,7 @@ def window_information_floor(params: Any, drives: dict[str, dict[str, np.ndarray
     within the window, m = sum F phi / sum phi^2 (F = F_t - F_w, phi = delta a + G), and (b) the
     window's integral estimate 1/m (``features.window_features``, no differentiated speed), for
     each of :data:`FLOOR_WINDOWS`. Keys ``least_squares_<w>``, ``integral_<w>``."""
-    from vehicle_estimation.estimators.mass.transformer.features import window_features
+    from vehicle_estimation.estimators.mass.transformer.features import INVERSE_MASS_UNIT, window_features
     from vehicle_estimation.training import truck_data as td
 
     out: dict[str, float] = {}
@@ -254,7 +254,7 @@ def window_information_floor(params: Any, drives: dict[str, dict[str, np.ndarray
             force, phi = windows[..., 0] - windows[..., 1], windows[..., 2] + windows[..., 3]
             with np.errstate(divide="ignore", invalid="ignore"):
                 ls.append(np.abs((force * phi).sum(axis=1) / (phi * phi).sum(axis=1) - truth) / truth)
-                integral.append(np.abs(1e4 / window_features(windows, block_s)[:, 0] - truth) / truth)
+                integral.append(np.abs(INVERSE_MASS_UNIT / window_features(windows, block_s)[:, 0] - truth) / truth)
         for key, errors in (("least_squares", ls), ("integral", integral)):
             e = np.concatenate(errors) if errors else np.zeros(0)
             out[f"{key}_{w}"] = float(100.0 * np.nanmean(e)) if e.size else math.nan
@@ -379,8 +379,7 @@ def main(args: argparse.Namespace) -> int:
                  "", "| inputs | least squares 1 s | least squares 3 s | integral 1 s | integral 3 s | "
                  f"transformer alone ({spec.window * spec.block_s:g} s) |", "| --- | ---: | ---: | ---: | ---: | ---: |"]
         for label, row in floor.items():
-            cells = [row[f"{k}_{w}"] for w in FLOOR_WINDOWS for k in ("least_squares",)] + \
-                    [row[f"integral_{w}"] for w in FLOOR_WINDOWS]
+            cells = [row[f"{k}_{w}"] for k in ("least_squares", "integral") for w in FLOOR_WINDOWS]
             nn = f"{row['transformer']:.2f}" if "transformer" in row else "–"
             lines.append(f"| {label} | " + " | ".join(f"{c:.2f}" for c in cells) + f" | {nn} |")
         text.append("\n".join(lines) + "\n")

@@ -445,11 +445,11 @@ class TaAekfMassEstimator:
             if self.features.add(nn_features, (force, ax_f, vx, slope)) and self.features.full:
                 window = self.features.array()[None]
                 slope_error = slope_error_deg(grade_error_variance, self.params.gravity)
-                m_nn = float(self.model.predict(window, slope_error)[0])
+                masses, distances = self.model.predict_with_input_distance(window, slope_error)
+                m_nn = float(masses[0])
                 tau = cfg.fixed_tau if not math.isnan(cfg.fixed_tau) else \
                     float(self.model.confidence(self.features.last_tau_features))
-                if cfg.network_input_max_z > 0.0 and \
-                        not float(self.model.input_distance(window, slope_error)[0]) <= cfg.network_input_max_z:
+                if cfg.network_input_max_z > 0.0 and not float(distances[0]) <= cfg.network_input_max_z:
                     self.network_out_of_domain += 1
                     tau = math.nan       # no weight: published as NaN, not used
                 self.last_network_mass, self.last_tau = m_nn, tau

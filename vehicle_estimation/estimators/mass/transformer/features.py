@@ -27,7 +27,7 @@ WINDOW_FEATURES = ("inverse_mass_integral", "inverse_mass_regression", "speed_ga
 #: every block: one network for an exact slope (the paper's setting) and for a slope estimate.
 SLOPE_ERROR_FEATURE = "slope_error_deg"
 #: 1/m is given in 1/(10 t) and clipped to +-INVERSE_MASS_CLIP (a window without drive force).
-_INVERSE_MASS_UNIT = 1.0e4
+INVERSE_MASS_UNIT = 1.0e4
 INVERSE_MASS_CLIP = 5.0
 
 
@@ -106,11 +106,11 @@ def window_features(windows: np.ndarray, block_s: float) -> np.ndarray:
     force_integral = block_s * 0.5 * (force[:, 1:] + force[:, :-1]).sum(axis=1)
     gain = speed[:, -1] - speed[:, 0] + block_s * 0.5 * (grade[:, 1:] + grade[:, :-1]).sum(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inverse_integral = gain / force_integral * _INVERSE_MASS_UNIT
-        inverse_regression = (force * demand).sum(axis=1) / (force * force).sum(axis=1) * _INVERSE_MASS_UNIT
+        inverse_integral = gain / force_integral * INVERSE_MASS_UNIT
+        inverse_regression = (force * demand).sum(axis=1) / (force * force).sum(axis=1) * INVERSE_MASS_UNIT
     span = max(w.shape[1] - 1, 1) * block_s
     out = np.stack([inverse_integral, inverse_regression, gain, np.sqrt(np.mean(demand * demand, axis=1)),
-                    force_integral / span / _INVERSE_MASS_UNIT], axis=1)
+                    force_integral / span / INVERSE_MASS_UNIT], axis=1)
     out[:, :2] = np.clip(np.nan_to_num(out[:, :2], nan=0.0), -INVERSE_MASS_CLIP, INVERSE_MASS_CLIP)
     return out
 

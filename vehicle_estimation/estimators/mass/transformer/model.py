@@ -215,18 +215,23 @@ class MassModel:
             raise ValueError(f"windows must be (B, {self.spec.window}, {self.spec.n_features}), got {w.shape}")
         return self.normalise(network_inputs(self.spec, w, slope_error_deg))
 
-    def input_distance(self, windows: np.ndarray, slope_error_deg: float | np.ndarray = 0.0) -> np.ndarray:
-        """The largest |input - training mean| / training std over each window's per-window inputs
-        (the window features and the slope error; 0 for a model without them): how far outside
-        its training data the network would extrapolate (B,)."""
-        x = self._normalised_inputs(windows, slope_error_deg)
-        per_window = x[:, 0, self.spec.n_features:]
-        return np.abs(per_window).max(axis=1) if per_window.shape[1] else np.zeros(x.shape[0])
-
     def predict(self, windows: np.ndarray, slope_error_deg: float | np.ndarray = 0.0) -> np.ndarray:
         """Mass [kg] for raw windows (B, window, 5); ``slope_error_deg``: the slope input's RMS
         error (scalar or per window), for a model with ``slope_error_input`` (else unused)."""
+        return self._network_mass(self._normalised_inputs(windows, slope_error_deg))
+
+    def predict_with_input_distance(self, windows: np.ndarray,
+                                    slope_error_deg: float | np.ndarray = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`predict` and, from the same inputs, the largest |input - training mean| /
+        training std over each window's per-window inputs (the window features and the slope
+        error; 0 for a model without them): how far outside its training data the network
+        extrapolates (B,)."""
         x = self._normalised_inputs(windows, slope_error_deg)
+        per_window = x[:, 0, self.spec.n_features:]
+        distance = np.abs(per_window).max(axis=1) if per_window.shape[1] else np.zeros(x.shape[0])
+        return self._network_mass(x), distance
+
+    def _network_mass(self, x: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             out = self.network(torch.as_tensor(x, dtype=torch.float32)).double().numpy()
         return out * self.mass_std + self.mass_mean
