@@ -32,3 +32,32 @@ def test_bench_cores_and_live_print_the_side_by_side_figures(tmp_path):
     assert "the nodes composed into one process" in report
     if compiled.enabled():
         assert "against the same maths in numpy" in report and "VB-ACKF, N = 10 (shipped): compiled" in report
+
+
+def test_the_in_process_floor_delivers_every_message_and_handles_none(tmp_path):
+    """The pipeline section's floor: the same in-process replay with the handlers switched off
+    reads, delivers and queues every message (lossless) but no node estimates anything; the
+    report puts it beside the replay."""
+    from rosbags.highlevel import AnyReader
+
+    from vehicle_estimation.evaluation.bench import _params_files, format_report
+    from vehicle_estimation.evaluation.bench_floor import handlers_switched_off
+    from vehicle_estimation.launcher.processes import NodeGroup
+    from vehicle_estimation.launcher.replay import replay
+    from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
+
+    bag = write_bag(simulate(scenario_by_name("short")), tmp_path / "drive")
+    with handlers_switched_off():
+        stats = replay(bag, tmp_path / "floor", lambda o: NodeGroup(_params_files(), overrides=o),
+                       progress=False, in_process=True)
+    assert stats.lossless and sum(stats.read.values()) > 1000
+    with AnyReader([tmp_path / "floor"]) as reader:
+        estimates = [c.topic for c in reader.connections if c.topic.startswith("/estimation/") and c.msgcount]
+    assert estimates == []
+    pipeline = {"bag_s": 120.0, "wall_s": 17.0, "rt_factor": 7.1, "lossless": True, "rss_minute_1": {},
+                "nodes": {"fusion": {"cpu_s": 5.0, "rss_mib": 80.0}},
+                "in_process": {"wall_s": 6.0, "cpu_s": 6.5, "rt_factor": 20.0, "lossless": True,
+                               "floor": {"wall_s": 1.0, "rt_factor": 120.0}}}
+    report = format_report({"pipeline": pipeline})
+    assert "Its floor, the same replay with every handler switched off" in report
+    assert "take the other 5.0 s, 83 % of the replay" in report

@@ -63,6 +63,26 @@ def test_cholesky_and_solve_match_numpy_and_refuse_what_numpy_refuses():
     assert not small_linalg.all_finite(np.array([0.0, np.nan]), np.eye(2))
 
 
+def test_scalar_correct_is_the_numpy_kalman_update():
+    """The compiled update with one linear measurement (wheel or CAN speed) against the numpy
+    correction it stands for (``SigmaPointKalmanFilter.correct`` with a 1 x 1 ``P_zz``)."""
+    from vehicle_estimation.estimators.common.sigma_points import CubaturePoints, SigmaPointKalmanFilter
+
+    rng = np.random.default_rng(3)
+    for n in (2, 5, 17):
+        A = rng.normal(size=(n, n))
+        P0, x0, H = A @ A.T + 0.1 * np.eye(n), rng.normal(size=n), rng.normal(size=n)
+        value, variance = 1.7, 0.04
+        ref = SigmaPointKalmanFilter(lambda x, dt: x, lambda x: x[:1], np.eye(n), np.eye(1), x0, P0, CubaturePoints(n))
+        PHt = P0 @ H
+        K_ref = ref.correct(np.array([value - H @ x0]), np.array([[H @ PHt + variance]]), PHt[:, None])
+        x, P, K = np.empty(n), np.empty((n, n)), np.empty(n)
+        innovation, s = small_linalg.scalar_correct(x0, P0, H, value, variance, x, P, K)
+        assert _relative(x, ref.x) < 1e-12 and _relative(P, ref.P) < 1e-12 and _relative(K, K_ref[:, 0]) < 1e-12
+        assert np.array_equal(P, P.T)
+        assert innovation == pytest.approx(value - H @ x0, rel=1e-12) and s == pytest.approx(H @ PHt + variance, rel=1e-12)
+
+
 # ---- the vehicle-state filters ----------------------------------------------------------
 def _inputs(t: float, x_true: np.ndarray, params: VehicleParams, wheels: bool, torque: bool) -> VehicleInputs:
     steer = 0.06 * math.sin(0.7 * t)

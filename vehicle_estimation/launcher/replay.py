@@ -188,9 +188,11 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
         raise ReplayError(str(exc)) from None
     overrides = release_delays(tick_s)
     # A fresh state file per replay: a respawned mass node resumes from it, while a new replay
-    # never inherits another run's estimate (that would break replay determinism).
+    # never inherits another run's estimate (that would break replay determinism). Nothing is
+    # respawned in one process, where the file (an fsync a second of bag) would only cost time.
     state_dir = Path(tempfile.mkdtemp(prefix="vehicle_estimation_replay_"))
-    overrides.setdefault("mass", {})["persist.path"] = str(state_dir / "mass_state.json")
+    if not in_process:
+        overrides.setdefault("mass", {})["persist.path"] = str(state_dir / "mass_state.json")
     writer = None
     if out is not None:
         if out.exists():

@@ -75,6 +75,7 @@ from vehicle_estimation.estimators.state.gabpnn import (
 )
 from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
 from vehicle_estimation.estimators.state.core import ModelErrorSettings, RollAccelerationTerm
+from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -390,7 +391,7 @@ class StateNode(EstimatorNode):
         floor = self._imu_noise_sum / (count * count)
         self._imu_noise_sum[:] = 0.0
         if floor.any():
-            floor = np.maximum(floor - np.diagonal(self.core.measurement_noise), 0.0)
+            floor = np.maximum(floor - self.core.measurement_noise_diagonal, 0.0)
         self.core.set_known_noise(ax=floor[0], ay=floor[1] + roll_noise, r=floor[2])
         if not self.core.step(t, inputs, z):
             self.reject("state:rejected_by_filter")
@@ -414,15 +415,20 @@ class StateNode(EstimatorNode):
             self.note_event("vehicle-state filter became non-finite: re-initialising")
             self.core.reset()
             return
-        cov = np.zeros((6, 6))
-        idx = [0, 1, 5]
-        cov[np.ix_(idx, idx)] = P[:3, :3]
-        for i in (2, 3, 4):
-            cov[i, i] = 1e6  # not estimated: vz, roll rate, pitch rate
+        # The twist covariance, row-major 6 x 6 over (vx, vy, vz, roll, pitch, yaw rate): the
+        # filter's (vx, vy, r) block; vz, roll rate and pitch rate are not estimated (1e6).
+        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P[:3, :3].tolist()
+        cov = (p00, p01, 0.0, 0.0, 0.0, p02,
+               p10, p11, 0.0, 0.0, 0.0, p12,
+               0.0, 0.0, 1e6, 0.0, 0.0, 0.0,
+               0.0, 0.0, 0.0, 1e6, 0.0, 0.0,
+               0.0, 0.0, 0.0, 0.0, 1e6, 0.0,
+               p20, p21, 0.0, 0.0, 0.0, p22)
         twist = (float(x[0]), float(x[1]), 0.0, 0.0, 0.0, float(x[2]))
-        self.publish(self.pub_state, self._state_layout.pack(sec_to_ns(t), twist + tuple(cov.ravel().tolist())))
+        self.publish(self.pub_state, self._state_layout.pack(sec_to_ns(t), twist + cov))
         if abs(x[0]) >= self.min_dynamic_speed:
-            beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
+            # The core's sideslip and its variance (core.sideslip...), of the x and P read above.
+            beta, beta_var = vm.sideslip(x), vm.sideslip_variance(x, P)
             converged = self._vx_measured and not (self.missing - self._fallbacks_in_variance)
         else:
             # Below the speed where the tyre model means anything (the core regularises slip

@@ -15,7 +15,7 @@ import numpy as np
 from vehicle_estimation.estimators.common.compiled import kernel
 
 __all__ = ["affine_moments", "all_finite", "cholesky_lower", "cholesky_solve_rows", "kalman_correct",
-           "times_transpose", "valid_moments"]
+           "scalar_correct", "times_transpose", "valid_moments"]
 
 
 @kernel
@@ -139,3 +139,30 @@ def kalman_correct(x_pred, P_pred, K, Pzz, innovation, x_out, P_out):
                 kpk += KPzz[i, a] * K[j, a]
             P_out[i, j] = P_pred[i, j] - kpk
             P_out[j, i] = P_out[i, j]
+
+
+@kernel
+def scalar_correct(x, P, H, value, variance, x_out, P_out, K_out):
+    """The exact Kalman update with one measurement ``value = H x + noise`` of ``variance``:
+    ``K = P H^T / s`` with ``s = H P H^T + variance``, ``x_out = x + K (value - H x)``,
+    ``P_out = P - K s K^T`` (symmetric by construction). Returns ``(innovation, s)``.
+    The numpy update it stands for: :meth:`SigmaPointKalmanFilter.correct` with a 1 x 1 ``P_zz``."""
+    n = x.shape[0]
+    s = variance
+    predicted = 0.0
+    for i in range(n):
+        pht = 0.0
+        for j in range(n):
+            pht += P[i, j] * H[j]
+        K_out[i] = pht
+        s += H[i] * pht
+        predicted += H[i] * x[i]
+    innovation = value - predicted
+    for i in range(n):
+        K_out[i] = K_out[i] / s
+    for i in range(n):
+        x_out[i] = x[i] + K_out[i] * innovation
+        for j in range(i, n):
+            P_out[i, j] = P[i, j] - K_out[i] * s * K_out[j]
+            P_out[j, i] = P_out[i, j]
+    return innovation, s

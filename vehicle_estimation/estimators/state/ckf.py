@@ -293,6 +293,14 @@ class VehicleStateCKF(VehicleStateCore):
 
     def _correct_linear(self, H: np.ndarray, value: float, variance: float) -> None:
         """The exact Kalman update with a scalar measurement ``value = H x + noise``."""
+        if self.compiled_checks:
+            f = self._filter
+            x, P, K = np.empty_like(f._x), np.empty_like(f._P), np.empty_like(f._x)
+            innovation, s = small_linalg.scalar_correct(f._x, f._P, H, value, variance, x, P, K)
+            f._x, f._P = x, P
+            f.last_gain, f.last_innovation, f.last_innovation_covariance = K[:, None], np.array([innovation]), \
+                np.array([[s]])
+            return
         PHt = self._filter.P @ H
         self._filter.correct(np.array([value - H @ self._filter.x]), np.array([[H @ PHt + variance]]),
                              PHt[:, None])

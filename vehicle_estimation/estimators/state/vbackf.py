@@ -220,6 +220,11 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         return self._point_estimate(self._dof, self._scale, "mean")
 
     @property
+    def R_mean_diagonal(self) -> np.ndarray:
+        """The diagonal of :attr:`R_mean` without the matrix (the state node reads it every step)."""
+        return np.diagonal(self._scale) / (self._dof - self.m - 1.0)
+
+    @property
     def R_vb(self) -> np.ndarray:
         """``(E[R^-1])^-1 = V / nu``, the mean-field VB point estimate."""
         return self._point_estimate(self._dof, self._scale, "vb")
@@ -520,6 +525,11 @@ class VehicleStateVBACKF(VehicleStateCKF):
     def measurement_noise(self) -> np.ndarray:
         """Current estimate ``E[R]`` (Eq. 11) of the covariance of ``[ax_imu, ay_imu, r]``."""
         return self._filter.R_mean
+
+    @property
+    def measurement_noise_diagonal(self) -> np.ndarray:
+        """The diagonal of :attr:`measurement_noise`."""
+        return self._filter.R_mean_diagonal
 
     @property
     def vb_fallbacks(self) -> int:
