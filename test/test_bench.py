@@ -57,7 +57,9 @@ def test_the_in_process_floor_delivers_every_message_and_handles_none(tmp_path):
     pipeline = {"bag_s": 120.0, "wall_s": 17.0, "rt_factor": 7.1, "lossless": True, "rss_minute_1": {},
                 "nodes": {"fusion": {"cpu_s": 5.0, "rss_mib": 80.0}},
                 "in_process": {"wall_s": 6.0, "cpu_s": 6.5, "rt_factor": 20.0, "lossless": True,
-                               "floor": {"wall_s": 1.0, "rt_factor": 120.0}}}
+                               "floor": {"wall_s": 1.0, "rt_factor": 120.0}},
+                "floor": {"wall_s": 8.5, "rt_factor": 14.1}}
     report = format_report({"pipeline": pipeline})
-    assert "Its floor, the same replay with every handler switched off" in report
+    assert "Floor of the in-process replay, the same replay with every handler switched off" in report
     assert "take the other 5.0 s, 83 % of the replay" in report
+    assert "Floor of the DDS replay" in report and "**14.1x real time** (20x is beyond it)" in report

@@ -6,25 +6,25 @@
   bench runs it beside the four estimator nodes and reports their CPU against four of it: what
   our nodes cost above rclpy's own per-message cost. Run as ``python -m
   vehicle_estimation.evaluation.bench_floor``; it prints ``ready`` once subscribed.
-* In-process replay (``--sections pipeline``): :func:`handlers_switched_off`, the same replay
-  (bag reading, the bus's delivery of every message to every subscribing node, the decoding
-  into a view, each node's stamp-ordered queue and its ticks) with every queued message
-  dropped where it would go to its handler: no checks, no estimator, nothing published.
+* Replays (``--sections pipeline``): :func:`handlers_switched_off`, the same replay (bag
+  reading, the delivery of every message to every subscribing node, DDS's or the in-process
+  bus's, the decoding, each node's stamp-ordered queue, the ticks and, through DDS, the
+  lock-step protocol) with every queued message dropped where it would go to its handler
+  (``input_queue.HANDLERS_OFF_ENV``): no checks, no estimator, nothing published.
 """
 
 from __future__ import annotations
 
 import contextlib
-import heapq
+import os
 import sys
 from collections.abc import Iterator
-from unittest import mock
 
 from rclpy.node import Node
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.launcher.replay_driver import msg_class
-from vehicle_estimation.ros.runtime.input_queue import StampOrderedInputs
+from vehicle_estimation.ros.runtime.input_queue import HANDLERS_OFF_ENV
 from vehicle_estimation.ros.runtime.qos import sensor_qos
 from vehicle_estimation.ros.runtime.spin import run_node
 
@@ -33,15 +33,17 @@ __all__ = ["FrameworkFloorNode", "handlers_switched_off", "main"]
 
 @contextlib.contextmanager
 def handlers_switched_off() -> Iterator[None]:
-    """Within the block, every node's input queue releases its messages to nobody."""
-
-    def release(self: StampOrderedInputs, horizon_ns: float) -> None:
-        heap = self._heap
-        while heap and heap[0][0] < horizon_ns:
-            heapq.heappop(heap)
-
-    with mock.patch.object(StampOrderedInputs, "release", release):
+    """Nodes made within the block (in this process, or started from it: they inherit the
+    environment) receive, decode and queue their inputs and release them to nobody."""
+    saved = os.environ.get(HANDLERS_OFF_ENV)
+    os.environ[HANDLERS_OFF_ENV] = "1"
+    try:
         yield
+    finally:
+        if saved is None:
+            os.environ.pop(HANDLERS_OFF_ENV, None)
+        else:
+            os.environ[HANDLERS_OFF_ENV] = saved
 
 
 class FrameworkFloorNode(Node):
