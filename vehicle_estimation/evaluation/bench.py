@@ -123,7 +123,7 @@ def run_pipeline(minutes: float, workdir: Path) -> dict[str, Any]:
     result["in_process"] = {"wall_s": stats.wall_s, "cpu_s": time.process_time() - cpu0,
                             "rt_factor": stats.bag_s / stats.wall_s, "lossless": stats.lossless}
     from vehicle_estimation.evaluation.bench_floor import handlers_switched_off
-    for key, in_process in (("in_process", True), ("dds", False)):
+    for in_process in (True, False):
         print(f"  the {'in-process' if in_process else 'DDS'} replay with every handler switched off (its floor) ...",
               file=sys.stderr, flush=True)
         with handlers_switched_off():
