@@ -48,11 +48,16 @@ def joint_readings(msg: Any) -> dict[str, JointReading]:
         values = list(getattr(msg, field))
         if len(values) not in (0, n):
             raise MalformedMessage(f"JointState.{field} has {len(values)} entries for {n} names")
-        arrays.append(values if values else [NAN] * n)
-    out: dict[str, JointReading] = {}
-    for name, p, v, e in zip(names, *arrays):
-        out[name] = JointReading(_finite_or_nan(p), _finite_or_nan(v), _finite_or_nan(e))
-    return out
+        arrays.append(_finite_or_nan_list(values) if values else [NAN] * n)
+    return dict(zip(names, map(JointReading, *arrays)))
+
+
+def _finite_or_nan_list(values: list) -> list[float]:
+    """:func:`_finite_or_nan` of each value; numbers (what a message holds) in one pass."""
+    try:
+        return [float(v) if math.isfinite(v) else NAN for v in values]
+    except TypeError:
+        return [_finite_or_nan(v) for v in values]
 
 
 def _finite_or_nan(x: Any) -> float:
@@ -73,8 +78,13 @@ class ChassisReading:
 
     @property
     def total_brake_torque(self) -> float:
-        finite = self.brake_torques[np.isfinite(self.brake_torques)]
-        return float(np.sum(finite)) if finite.size else NAN
+        finite = [b for b in self.brake_torques.tolist() if math.isfinite(b)]
+        return sum(finite, 0.0) if finite else NAN
+
+    @property
+    def fastest_wheel_speed(self) -> float:
+        """The largest |wheel speed| reported [rad/s]; 0 without any."""
+        return max((abs(w) for w in self.wheel_speeds.tolist() if math.isfinite(w)), default=0.0)
 
 
 @per_view

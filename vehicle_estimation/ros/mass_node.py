@@ -195,9 +195,9 @@ class MassNode(EstimatorNode):
             return
         if math.isfinite(total):
             self.brake_torque, self.brake_t = max(total, 0.0), t
-        undriven = reading.wheel_speeds[self.undriven_wheels]
-        if np.isfinite(undriven).all():
-            v = float(np.mean(undriven)) * self.vehicle.wheel_radius
+        undriven = reading.wheel_speeds[self.undriven_wheels].tolist()
+        if all(math.isfinite(w) for w in undriven):
+            v = sum(undriven) / len(undriven) * self.vehicle.wheel_radius
             self.window.add_wheel_speed(t, v)
             self.wheel_speed = (t, v)
 

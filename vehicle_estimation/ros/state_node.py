@@ -274,8 +274,7 @@ class StateNode(EstimatorNode):
         except MalformedMessage:
             self.reject("joint_states:malformed")
             return
-        wheels = reading.wheel_speeds
-        if np.any(np.abs(wheels[np.isfinite(wheels)]) * self.vehicle.wheel_radius > WHEEL_SPIN_MARGIN * MAX_SPEED):
+        if reading.fastest_wheel_speed * self.vehicle.wheel_radius > WHEEL_SPIN_MARGIN * MAX_SPEED:
             self.reject("joint_states:implausible")
             return
         self.chassis = reading
