@@ -81,6 +81,7 @@ def run_in_process(group: Any) -> int:
     """The group's nodes composed into this process until Ctrl-C or SIGTERM (rclpy's signal
     handlers shut the context down); exit 2 when a node refuses its parameters."""
     import rclpy
+    from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
 
     from vehicle_estimation.ros.runtime.in_process import LiveBus
@@ -103,6 +104,8 @@ def run_in_process(group: Any) -> int:
         names = ", ".join(node.get_name() for node in nodes)
         print(f"started {names} in this process, namespace {group.namespace}; Ctrl-C stops them", file=sys.stderr)
         spin([host, *nodes], "composed")
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass                # a stop that came before the executor spun (spin catches the rest)
     finally:
         for node in [*nodes, host]:
             node.destroy_node()

@@ -45,6 +45,8 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None) ->
         return 2
     try:
         spin([node], node.get_name())
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass                # a stop that came between start-up and spin
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
@@ -54,12 +56,14 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None) ->
 def spin(nodes: list[Node], profile_name: str) -> None:
     """Spin ``nodes`` on one executor until the context shuts down (Ctrl-C, SIGTERM: rclpy's
     signal handlers); the profile is ``<profile_name>.prof`` (see :func:`_start_profiler`)."""
-    executor = make_executor()
-    for node in nodes:
-        executor.add_node(node)
-    never = Future()
-    profiler = _start_profiler()
+    executor, profiler = None, None
     try:
+        # A Ctrl-C may come as soon as the node is up, before the executor spins: it is a stop.
+        executor = make_executor()
+        for node in nodes:
+            executor.add_node(node)
+        never = Future()
+        profiler = _start_profiler()
         # spin_until_future_complete in slices rather than spin(): the events executor's
         # spin() busy-waits in rclpy 7 (Jazzy), and slices let us notice a shutdown.
         while rclpy.ok():
@@ -69,7 +73,8 @@ def spin(nodes: list[Node], profile_name: str) -> None:
     finally:
         if profiler is not None:
             _dump_profile(profiler, profile_name)
-        executor.shutdown()
+        if executor is not None:
+            executor.shutdown()
 
 
 def _start_profiler() -> Any:
