@@ -75,7 +75,6 @@ from vehicle_estimation.estimators.state.gabpnn import (
 )
 from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
 from vehicle_estimation.estimators.state.core import ModelErrorSettings, RollAccelerationTerm
-from vehicle_estimation.estimators.state import vehicle_model as vm
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -426,8 +425,7 @@ class StateNode(EstimatorNode):
         twist = (float(x[0]), float(x[1]), 0.0, 0.0, 0.0, float(x[2]))
         self.publish(self.pub_state, self._state_layout.pack(sec_to_ns(t), twist + cov))
         if abs(x[0]) >= self.min_dynamic_speed:
-            # The core's sideslip and its variance (core.sideslip...), of the x and P read above.
-            beta, beta_var = vm.sideslip(x), vm.sideslip_variance(x, P)
+            beta, beta_var = float(self.core.sideslip), float(self.core.sideslip_variance)
             converged = self._vx_measured and not (self.missing - self._fallbacks_in_variance)
         else:
             # Below the speed where the tyre model means anything (the core regularises slip

@@ -215,8 +215,11 @@ class SigmaPointKalmanFilter(AdditiveNoiseFilter):
         # Optional compiled steps, the same rules on the same model: the time update
         # ``(x, P, Q, dt, *args) -> (x, P)`` and, for an affine ``h``, the update
         # ``(z, x, P, H, c, R) -> (x, P, K, innovation, P_zz)``; None where they return None.
+        # ``compiled_scalar_correct``: :meth:`correct_scalar`'s update
+        # (``small_linalg.scalar_correct``).
         self.compiled_predict: Optional[Callable] = None
         self.compiled_update: Optional[Callable] = None
+        self.compiled_scalar_correct: Optional[Callable] = None
         self.last_innovation_covariance: Optional[np.ndarray] = None
         self.last_gain: Optional[np.ndarray] = None
 
@@ -282,6 +285,19 @@ class SigmaPointKalmanFilter(AdditiveNoiseFilter):
         self._P = 0.5 * (P + P.T)
         self.last_gain, self.last_innovation, self.last_innovation_covariance = K, innovation, Pzz
         return K
+
+    def correct_scalar(self, H: np.ndarray, value: float, variance: float) -> None:
+        """The exact Kalman update with one linear measurement ``value = H x + noise`` of
+        ``variance`` (:meth:`correct` with a 1 x 1 ``P_zz``)."""
+        if self.compiled_scalar_correct is not None:
+            x, P, K = np.empty_like(self._x), np.empty_like(self._P), np.empty_like(self._x)
+            innovation, s = self.compiled_scalar_correct(self._x, self._P, H, value, variance, x, P, K)
+            self._x, self._P = x, P
+            self.last_gain, self.last_innovation = K[:, None], np.array([innovation])
+            self.last_innovation_covariance = np.array([[s]])
+            return
+        PHt = self._P @ H
+        self.correct(np.array([value - H @ self._x]), np.array([[H @ PHt + variance]]), PHt[:, None])
 
     def update(self, z, *args, R: Optional[np.ndarray] = None, select=None) -> np.ndarray:
         """Measurement update with ``z`` (the ``select``-ed channels); returns ``z - z_hat``."""

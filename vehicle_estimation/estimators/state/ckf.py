@@ -189,6 +189,7 @@ class VehicleStateCKF(VehicleStateCore):
             model = model_kernels.CompiledModel(self.params, cfg.min_speed, cfg.max_substep, cfg.wheel_slip_forces)
         self._filter.compiled_predict = None if model is None else model.predict
         self._filter.compiled_update = None if model is None else model.update
+        self._filter.compiled_scalar_correct = small_linalg.scalar_correct if on else None
         self.compiled_checks = on
         self._compiled_model = model
 
@@ -293,14 +294,4 @@ class VehicleStateCKF(VehicleStateCore):
 
     def _correct_linear(self, H: np.ndarray, value: float, variance: float) -> None:
         """The exact Kalman update with a scalar measurement ``value = H x + noise``."""
-        if self.compiled_checks:
-            f = self._filter
-            x, P, K = np.empty_like(f._x), np.empty_like(f._P), np.empty_like(f._x)
-            innovation, s = small_linalg.scalar_correct(f._x, f._P, H, value, variance, x, P, K)
-            f._x, f._P = x, P
-            f.last_gain, f.last_innovation, f.last_innovation_covariance = K[:, None], np.array([innovation]), \
-                np.array([[s]])
-            return
-        PHt = self._filter.P @ H
-        self._filter.correct(np.array([value - H @ self._filter.x]), np.array([[H @ PHt + variance]]),
-                             PHt[:, None])
+        self._filter.correct_scalar(H, value, variance)
