@@ -326,6 +326,28 @@ def test_the_estimator_tells_the_network_the_slope_error_it_is_given(monkeypatch
     assert seen and all(s == pytest.approx(0.2) for s in seen)
 
 
+def test_the_network_bias_is_primed_anew_where_gnss_is_lost_or_back(monkeypatch):
+    """The network's lasting error depends on the slope error it is told: a new regime (the
+    slope's error lasting for the drive instead of seconds) starts a new, independent bias; a
+    steady regime keeps the one it has learnt."""
+    model = tiny_model(window=6, block_steps=5)
+    est = TaAekfMassEstimator(TRUCK, TaAekfConfig(inference_period_steps=5, initial_mass=20000.0), model=model)
+    primed = []
+    real = est.ekf.reset_network_bias
+    monkeypatch.setattr(est.ekf, "reset_network_bias", lambda variance: primed.append(variance) or real(variance))
+    variance = (TRUCK.gravity * math.sin(math.radians(0.2))) ** 2
+    k = 0
+    for correlation_s, expected in ((2.0, 1), (math.inf, 2), (2.0, 3)):
+        for _ in range(300):
+            k += 1
+            est.step(0.01 * k, 20.0 + 0.001 * k, 0.0, 0.01, drive_force=15000.0, brake_torque=0.0,
+                     grade_error_variance=variance, grade_error_correlation_s=correlation_s)
+        assert len(primed) == expected
+        assert est.network_updates > 0
+    i = est.ekf.i_bias
+    assert i is not None and est.ekf.P[i, i] > 0.0
+
+
 def test_a_window_outside_the_training_data_is_not_used():
     """A car's window reads an inverse mass the truck network never saw: its output gets no weight."""
     torch.manual_seed(5)

@@ -11,7 +11,7 @@ import pytest
 
 from vehicle_estimation.estimators.mass.ta_aekf import REJECT_REASONS, TaAekfConfig, TaAekfMassEstimator
 from vehicle_estimation.estimators.mass.ta_aekf_filter import (
-    AdaptiveEKF, DriveInput, longitudinal_accel, transition, transition_jacobian)
+    AdaptiveEKF, DriveInput, effective_tau, longitudinal_accel, transition, transition_jacobian)
 from vehicle_estimation.estimators.mass.transformer.features import (confidence_level, fit_confidence_gaussian,
                                                             gaussian_density, peak_density)
 from vehicle_estimation.contract.vehicle import load_vehicle_params
@@ -316,6 +316,42 @@ def test_a_network_bias_state_keeps_a_biased_network_from_pulling_the_mass():
         errors[bias] = (estimate / mass - 1.0, (estimate - mass) / sigma)
     assert errors[0.0][0] > 0.1 and errors[0.0][1] > 5.0          # the paper's: the network's value, overconfident
     assert abs(errors[0.26][0]) < 0.02 and abs(errors[0.26][1]) < 2.0
+
+
+def test_the_effective_tau_is_the_tau_in_use_and_falls_as_a_lasting_network_error_is_learnt():
+    """Without the bias state a network output's gain on 1/m is the paper's for its tau; with it,
+    a network that reads 20 % heavy throughout loses its pull on the mass as the bias takes up
+    its error (tau' of :func:`effective_tau`)."""
+    truck = load_vehicle_params(PARAMS_DIR / "heavy_truck.yaml")
+    mass, dt, steps, tau = 36000.0, 0.01, 20000, 0.5
+    rng = np.random.default_rng(1)
+    v = 22.0
+    theta0 = 1.0 / 28000.0
+    filters = {bias: AdaptiveEKF(np.array([v, theta0]), np.diag([1.0, theta0 ** 2]), (bias * theta0) ** 2)
+               for bias in (0.0, 0.3)}
+    seen: dict[float, list[float]] = {0.0: [], 0.3: []}
+    for k in range(steps):
+        drag = 0.5 * truck.air_density * truck.drag_area * v * v
+        force = mass * (truck.gravity * truck.rolling_resistance + 0.05 * math.sin(2.0 * math.pi * k * dt / 20.0))
+        u = DriveInput(force + drag, 0.0, 0.0)
+        v += longitudinal_accel(v, 1.0 / mass, u, truck) * dt
+        v_meas = v + rng.normal(0.0, 0.05)
+        m_nn = 1.2 * mass * (1.0 + rng.normal(0.0, 0.02))
+        for bias, ekf in filters.items():
+            theta = ekf.x[1]
+            ekf.predict(u, dt, np.diag([0.05 ** 2 * dt, (2e-4 * theta) ** 2 * dt] + ([0.0] if ekf.with_bias else [])),
+                        truck, 1.0)
+            if k % 10 == 0:
+                ekf.update(v_meas, 0.05 ** 2, 1.0 / m_nn, (0.78 / m_nn) ** 2, tau)
+                seen[bias].append(ekf.last_effective_tau)
+            else:
+                ekf.update(v_meas, 0.05 ** 2)
+    assert np.allclose(seen[0.0], tau, rtol=1e-9)
+    with_bias = np.array(seen[0.3])
+    assert np.all((with_bias >= 0.0) & (with_bias <= tau))
+    assert np.mean(with_bias[-200:]) < 0.2 * np.mean(with_bias[:20])
+    assert effective_tau(1e-12, 1e-12, 2e-12, 1e-12) == pytest.approx(0.5)
+    assert math.isnan(effective_tau(1.0, 0.0, 1.0, 1.0)) and effective_tau(-1.0, 1.0, 2.0, 1.0) == 0.0
 
 
 def test_the_grade_error_column_of_the_jacobian_matches_central_differences():

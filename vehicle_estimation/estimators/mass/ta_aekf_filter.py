@@ -133,6 +133,7 @@ class AdaptiveEKF:
             P = np.pad(P, ((0, len(extra)), (0, len(extra))))
             P[2:, 2:] = np.diag(extra)
         self.x, self.P = x, P
+        self.last_effective_tau = math.nan
 
     @property
     def grade_error(self) -> float:
@@ -146,9 +147,11 @@ class AdaptiveEKF:
         self.P[0, 0] = variance
 
     def reset_network_bias(self, variance: float) -> None:
-        """b's variance set anew, uncorrelated with the rest (from the first network output)."""
+        """b a new error: zero, of ``variance``, uncorrelated with the rest (from the first network
+        output, and again where the network's conditions change)."""
         i = self.i_bias
         if i is not None:
+            self.x[i] = 0.0
             self.P[i, :] = self.P[:, i] = 0.0
             self.P[i, i] = variance
 
@@ -199,6 +202,8 @@ class AdaptiveEKF:
                 if self.i_bias is not None:
                     h_nn[self.i_bias] = 1.0                               # + the network's bias
                 innovation_var = float(h_nn @ self.P @ h_nn) + r_scaled
+                self.last_effective_tau = effective_tau(float((self.P @ h_nn)[1]), float(self.P[1, 1]),
+                                                        innovation_var, r_nn)
                 gated = gate_sigma > 0.0 and \
                     (inv_mass_nn - float(h_nn @ self.x)) ** 2 > gate_sigma ** 2 * innovation_var
                 if not gated:
@@ -216,6 +221,24 @@ class AdaptiveEKF:
         self.P = i_kh @ self.P @ i_kh.T + k @ rr @ k.T                    # Eq. (26), Joseph form
         self.P = 0.5 * (self.P + self.P.T)
         return used
+
+
+def effective_tau(cross: float, p_mass: float, innovation_var: float, r_nn: float) -> float:
+    """The confidence level of Eq. (36) that, in the paper's filter on [v_x, 1/m] alone, would give
+    a network output the gain on 1/m it has here: tau' = R_nn / (R_nn + R'), where R' is the
+    variance with which P_mass / (P_mass + R') equals this filter's gain ``cross / innovation_var``
+    (``cross`` = the 1/m entry of P h^T, ``p_mass`` = P of 1/m, both before the update).
+
+    Without the network-bias state it is the tau in use. With it, once the speed dynamics have
+    pinned 1/m and the bias has taken up the network's lasting error, a network output moves
+    the bias and hardly the mass: the gain, and tau', fall towards 0. NaN where undefined."""
+    if not (p_mass > 0.0 and innovation_var > 0.0 and r_nn > 0.0):
+        return math.nan
+    gain = cross / innovation_var
+    if not gain > 0.0:
+        return 0.0
+    r_equivalent = p_mass / gain - p_mass
+    return r_nn / (r_nn + max(r_equivalent, 0.0))
 
 
 def drive_force_input(params: VehicleParams, vx: float, drive_force: Any, engine_torque: Any,
