@@ -57,6 +57,30 @@ def test_batch_ls_mass_is_exact_on_exact_data_and_biased_by_a_wrong_grade():
     assert math.isnan(none["mass"]) and none["samples"] == 0
 
 
+def test_kinematic_roll_reads_the_gravity_across_a_rolled_car_in_a_turn():
+    """A car turning steadily (v r = 4 m/s^2) rolled 3 deg: the baseline takes the centripetal
+    part out; without the yaw rate it would read the turn as ~24 deg of roll."""
+    t = np.arange(0.0, 60.0, 0.01)
+    v, r, roll = np.full_like(t, 20.0), np.full_like(t, 0.2), np.radians(3.0) * np.minimum(t / 10.0, 1.0)
+    fy = v * r + G * np.sin(roll)
+    tk, phi = baselines.kinematic_roll(t, fy, r, t, v, gravity=G)
+    sel = tk > 30.0
+    assert np.degrees(np.max(np.abs(phi[sel] - np.interp(tk[sel], t, roll)))) < 0.05
+    _, phi0 = baselines.kinematic_roll(t, fy, np.zeros_like(r), t, v, gravity=G)
+    assert np.degrees(phi0[-1]) > 20.0
+
+
+def test_gnss_course_is_the_direction_of_the_fixes_and_waits_for_distance():
+    t = np.arange(0.0, 20.0, 0.1)
+    heading = math.radians(30.0)
+    speed = np.where(t < 5.0, 0.0, 10.0)                   # standing for 5 s, then 10 m/s
+    dist = np.cumsum(speed) * 0.1
+    east, north = dist * math.cos(heading), dist * math.sin(heading)
+    tc, course = baselines.gnss_course(t, east, north)
+    assert tc.size and tc[0] > 5.0                          # nothing from the fixes of a standing car
+    np.testing.assert_allclose(course, heading, atol=1e-9)
+
+
 def test_validate_command_end_to_end(tmp_path):
     """A CommonRoad lane change (lateral) and our short hilly drive (longitudinal) through the
     nodes: every row has our figures, the baseline's and the ratio; plots and JSON written."""
@@ -75,6 +99,16 @@ def test_validate_command_end_to_end(tmp_path):
         assert math.isfinite(row["ours"]["rmse"]) and math.isfinite(row["base"]["rmse"]), row
         assert row["ratio"] == pytest.approx(row["ours"]["rmse"] / row["base"]["rmse"])
     assert rows[("sim_hills", "slope")]["independent"] is False
+    # the fusion's and the state's motion outputs against the raw sensors
+    motion = {(r["case"], r["quantity"]): r for r in result["motion"]}
+    for key in (("commonroad_dlc", "speed"), ("commonroad_dlc", "pitch"), ("commonroad_dlc", "roll"),
+                ("commonroad_dlc", "heading"), ("commonroad_dlc", "vx"), ("commonroad_dlc", "yaw rate"),
+                ("sim_hills", "speed"), ("sim_hills", "pitch"), ("sim_hills", "yaw rate")):
+        assert key in motion, sorted(motion)
+        row = motion[key]
+        assert math.isfinite(row["ours"]["rmse"]) and math.isfinite(row["base"]["rmse"]), row
+    assert motion[("commonroad_dlc", "heading")]["ours"]["rmse"] < 5.0     # degrees, wrapped
+    assert motion[("commonroad_dlc", "speed")]["ours"]["rmse"] < 0.5
     assert rows[("commonroad_dlc", "sideslip")]["ours"]["rmse"] < 1.0      # degrees: no divergence
     text = (out / "validation.md").read_text()
     assert "| commonroad_dlc | sideslip [deg]" in text

@@ -49,11 +49,6 @@ def _stamp(msg: Any, log_ns: int) -> float:
     return log_ns * 1e-9
 
 
-def _pitch(q: Any) -> float:
-    """Pitch (rotation about body y, REP-103: positive nose down) of a geometry_msgs quaternion."""
-    return euler_from_quat(np.array([q.x, q.y, q.z, q.w]))[1]
-
-
 def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
     if msgtype == "std_msgs/msg/Float64":
         return {"value": float(msg.data)}
@@ -66,9 +61,11 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
     if msgtype == "nav_msgs/msg/Odometry":
         tw = msg.twist.twist
         pos = msg.pose.pose.position
+        q = msg.pose.pose.orientation
+        roll, pitch, yaw = euler_from_quat(np.array([q.x, q.y, q.z, q.w]))
         return {"x": pos.x, "y": pos.y, "vx": tw.linear.x, "vy": tw.linear.y,
                 "speed": math.hypot(tw.linear.x, tw.linear.y),
-                "pitch": _pitch(msg.pose.pose.orientation)}
+                "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw)}
     return None
 
 

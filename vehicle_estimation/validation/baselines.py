@@ -15,7 +15,16 @@ data, so that a number says how much better (or worse) than the obvious method a
   is an outlier (braking while a drive force is still reported) are trimmed and the fit redone.
 
 The vehicle's lateral baseline (a linear single-track KF) is
-:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`.
+:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`. The fusion's and the state's
+motion outputs are held against the raw sensors they start from:
+
+* :func:`kinematic_roll`: the roll from the accelerometer, ``phi = asin((f_y - v r) / g)`` (the
+  lateral specific force less the centripetal acceleration is the gravity across the car),
+  low-passed as the grade; the pitch's baseline is the kinematic grade's tilt itself.
+* :func:`gnss_course`: the heading from the GNSS fixes alone, the direction of the displacement
+  over the last second (a course over ground without Doppler).
+* the CAN speed for the speed and vx, the gyro's own yaw rate for the yaw rate (no baseline
+  function: the sensor is the baseline).
 """
 
 from __future__ import annotations
@@ -70,6 +79,33 @@ def kinematic_grade(imu_t: np.ndarray, fx: np.ndarray, speed_t: np.ndarray, spee
     f = _lowpass(np.interp(grid, imu_t, fx), rate_hz, SPEED_DERIVATIVE_CUTOFF_HZ, causal=True)
     raw = np.arcsin(np.clip((f - dv) / gravity, -1.0, 1.0))
     return grid, _lowpass(raw, rate_hz, cutoff_hz, causal=True)
+
+
+def kinematic_roll(imu_t: np.ndarray, fy: np.ndarray, yaw_rate: np.ndarray, speed_t: np.ndarray,
+                   speed: np.ndarray, *, gravity: float = GRAVITY, rate_hz: float = 50.0,
+                   cutoff_hz: float = KINEMATIC_GRADE_CUTOFF_HZ) -> tuple[np.ndarray, np.ndarray]:
+    """(t, roll [rad], REP-103: right side down positive) from the lateral specific force, the
+    yaw rate and the speed, causal: a body rolled by phi feels g sin(phi) along its y axis on top
+    of the centripetal v r (vy' neglected, as a textbook tilt sensor does)."""
+    grid, v, _ = speed_derivative(speed_t, speed, rate_hz)
+    f = _lowpass(np.interp(grid, imu_t, fy), rate_hz, SPEED_DERIVATIVE_CUTOFF_HZ, causal=True)
+    r = _lowpass(np.interp(grid, imu_t, yaw_rate), rate_hz, SPEED_DERIVATIVE_CUTOFF_HZ, causal=True)
+    raw = np.arcsin(np.clip((f - v * r) / gravity, -1.0, 1.0))
+    return grid, _lowpass(raw, rate_hz, cutoff_hz, causal=True)
+
+
+def gnss_course(t: np.ndarray, east: np.ndarray, north: np.ndarray, *, baseline_s: float = 1.0,
+                min_distance_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """(t, course [rad], ENU yaw: from east, counter-clockwise) of each fix's displacement from
+    the last fix at least ``baseline_s`` before it, where that displacement exceeds
+    ``min_distance_m`` (below it the fixes' noise decides the direction)."""
+    t, east, north = (np.asarray(x, dtype=float) for x in (t, east, north))
+    j = np.searchsorted(t, t - baseline_s, side="right") - 1
+    ok = j >= 0
+    j = np.clip(j, 0, None)
+    de, dn = east - east[j], north - north[j]
+    ok &= np.hypot(de, dn) >= min_distance_m
+    return t[ok], np.arctan2(dn[ok], de[ok])
 
 
 def batch_ls_mass(force_t: np.ndarray, drive_force: np.ndarray, speed_t: np.ndarray, speed: np.ndarray,

@@ -24,6 +24,11 @@ Cases (``--cases``; default: all that can be made here):
 * ``sim_hills``: *our own* simulator's hilly drive, labelled as such: the filters share its
   model, so it is a reference row, not evidence.
 
+On every case, a second table holds the motion outputs against the raw sensor a user would
+otherwise take: the fusion's speed (the CAN speed), pitch (the accelerometer's kinematic tilt),
+roll (the accelerometer tilt less v r, where the drive rolls the car) and, with GNSS, heading (the
+course of the fixes over 1 s); the vehicle state's vx (the CAN speed) and yaw rate (the raw gyro).
+
 The real Stanford drive has its own command, ``vehicle-estimation stanford`` (the same kind of
 table, with its raw and vibration variants).
 
@@ -173,8 +178,8 @@ def _row(case: Case, quantity: str, unit: str, estimator: str, baseline: str,
 
 def _read_estimates(bag: Path) -> dict:
     from vehicle_estimation.evaluation.report import read_bag
-    return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.GT_MASS, T.GT_ROAD_SLOPE,
-                          T.GT_SIDESLIP, T.GT_VEHICLE_STATE])
+    return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.ODOMETRY, T.GT_MASS,
+                          T.GT_ROAD_SLOPE, T.GT_SIDESLIP, T.GT_VEHICLE_STATE, T.GT_ODOMETRY])
 
 
 def consistency_rows(case: Case, est: dict) -> list[dict]:
@@ -211,12 +216,17 @@ def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str
     return rows, series
 
 
-def _read_longitudinal_inputs(bag: Path) -> dict[str, np.ndarray]:
+def _read_sensor_inputs(bag: Path) -> dict[str, np.ndarray]:
+    """The raw sensors the baselines start from: IMU (f_x, f_y, yaw rate), CAN speed, drive
+    force, and the GNSS fixes with a valid status in ENU about the first one (as the fusion's
+    odom frame), each topic empty where the bag lacks it."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    imu, speed, force = [], [], []
-    want = {T.IMU, T.SPEED, T.POWERTRAIN}
+    from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+
+    imu, speed, force, fixes = [], [], [], []
+    want = {T.IMU, T.SPEED, T.POWERTRAIN, T.GNSS}
     with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = [c for c in reader.connections if c.topic.lstrip("/") in want]
         for conn, _, raw in reader.messages(connections=conns):
@@ -224,21 +234,82 @@ def _read_longitudinal_inputs(bag: Path) -> dict[str, np.ndarray]:
             t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             topic = conn.topic.lstrip("/")
             if topic == T.IMU:
-                imu.append((t, msg.linear_acceleration.x))
+                imu.append((t, msg.linear_acceleration.x, msg.linear_acceleration.y, msg.angular_velocity.z))
             elif topic == T.SPEED:
                 speed.append((t, msg.twist.twist.linear.x))
+            elif topic == T.GNSS:
+                if msg.status.status >= 0 and math.isfinite(msg.latitude) and math.isfinite(msg.longitude):
+                    fixes.append((t, msg.latitude, msg.longitude, msg.altitude))
             else:
                 effort = dict(zip(msg.name, msg.effort))
                 force.append((t, effort.get(T.DRIVE_JOINT, math.nan)))
-    empty = np.zeros((0, 2))
-    imu_a, speed_a, force_a = (np.array(x, dtype=float) if x else empty for x in (imu, speed, force))
-    return {"imu_t": imu_a[:, 0], "fx": imu_a[:, 1], "speed_t": speed_a[:, 0], "speed": speed_a[:, 1],
-            "force_t": force_a[:, 0], "force": force_a[:, 1]}
+    imu_a = np.array(imu, dtype=float).reshape(-1, 4)
+    speed_a, force_a = (np.array(x, dtype=float).reshape(-1, 2) for x in (speed, force))
+    enu = np.zeros((0, 3))
+    if fixes:
+        origin = LocalTangentPlane(*fixes[0][1:])
+        enu = np.array([origin.to_enu(*f[1:]) for f in fixes], dtype=float).reshape(-1, 3)
+    return {"imu_t": imu_a[:, 0], "fx": imu_a[:, 1], "fy": imu_a[:, 2], "wz": imu_a[:, 3],
+            "speed_t": speed_a[:, 0], "speed": speed_a[:, 1], "force_t": force_a[:, 0], "force": force_a[:, 1],
+            "gnss_t": np.array([f[0] for f in fixes], dtype=float), "east": enu[:, 0], "north": enu[:, 1]}
 
 
-def longitudinal_rows(case: Case, est: dict, vehicle: VehicleParams, mass_method: str,
+def _wrapped(t_est, y_est, t_true, y_true, start: float) -> tuple[np.ndarray, np.ndarray]:
+    """(angle error wrapped to [-pi, pi), zeros) after ``start``: an angle's error as a pair for :func:`_row`."""
+    _, e, r = _errors(t_est, np.unwrap(y_est), t_true, np.unwrap(y_true), start)
+    err = (e - r + math.pi) % (2.0 * math.pi) - math.pi
+    return err, np.zeros_like(err)
+
+
+def motion_rows(case: Case, est: dict, inputs: dict, vehicle: VehicleParams, filter_name: str) -> list[dict]:
+    """The fusion's speed, pitch, roll and heading and the vehicle state's vx and yaw rate, each
+    against the raw sensor a user would otherwise take (:mod:`.baselines`)."""
+    rows: list[dict] = []
+    odo, gt = est.get(T.ODOMETRY), est.get(T.GT_ODOMETRY)
+    state, gt_state = est.get(T.VEHICLE_STATE), est.get(T.GT_VEHICLE_STATE)
+    have_can = inputs["speed"].size > 1
+    can = (inputs["speed_t"], inputs["speed"])
+    deg = 180.0 / math.pi
+    if gt is not None and odo is not None:
+        start = float(gt["t"][0]) + WARMUP_S
+        fusion = "fusion (ES-EKF)"
+        rows.append(_row(case, "speed", "m/s", fusion, "CAN speed",
+                         _errors(odo["t"], odo["speed"], gt["t"], gt["speed"], start)[1:],
+                         _errors(*can, gt["t"], gt["speed"], start)[1:] if have_can else None))
+        if have_can and inputs["imu_t"].size > 1:
+            kt, kgrade = baselines.kinematic_grade(inputs["imu_t"], inputs["fx"], *can, gravity=vehicle.gravity)
+            # REP-103 pitch is nose down positive: a climbing car's accelerometer tilt is -grade
+            rows.append(_row(case, "pitch", "deg", fusion, "accelerometer tilt (kinematic grade)",
+                             _errors(odo["t"], odo["pitch"], gt["t"], gt["pitch"], start)[1:],
+                             _errors(kt, -kgrade, gt["t"], gt["pitch"], start)[1:], scale=deg))
+            if np.ptp(gt["roll"]) > math.radians(0.5):    # a drive that rolls the car
+                rt, roll = baselines.kinematic_roll(inputs["imu_t"], inputs["fy"], inputs["wz"], *can,
+                                                    gravity=vehicle.gravity)
+                rows.append(_row(case, "roll", "deg", fusion, "accelerometer tilt less v r",
+                                 _errors(odo["t"], odo["roll"], gt["t"], gt["roll"], start)[1:],
+                                 _errors(rt, roll, gt["t"], gt["roll"], start)[1:], scale=deg))
+        if inputs["gnss_t"].size > 1:     # without GNSS the heading is free: no absolute figure
+            ct, course = baselines.gnss_course(inputs["gnss_t"], inputs["east"], inputs["north"])
+            if ct.size > 1:
+                rows.append(_row(case, "heading", "deg", fusion, "GNSS course over 1 s",
+                                 _wrapped(odo["t"], odo["yaw"], gt["t"], gt["yaw"], start),
+                                 _wrapped(ct, course, gt["t"], gt["yaw"], start), scale=deg))
+    if gt_state is not None and state is not None:
+        start = float(gt_state["t"][0]) + WARMUP_S
+        name = f"vehicle_state ({filter_name})"
+        rows.append(_row(case, "vx", "m/s", name, "CAN speed",
+                         _errors(state["t"], state["vx"], gt_state["t"], gt_state["vx"], start)[1:],
+                         _errors(*can, gt_state["t"], gt_state["vx"], start)[1:] if have_can else None))
+        if inputs["imu_t"].size > 1:
+            rows.append(_row(case, "yaw rate", "deg/s", name, "gyro (raw)",
+                             _errors(state["t"], state["yaw_rate"], gt_state["t"], gt_state["yaw_rate"], start)[1:],
+                             _errors(inputs["imu_t"], inputs["wz"], gt_state["t"], gt_state["yaw_rate"], start)[1:],
+                             scale=deg))
+    return rows
+
+
+def longitudinal_rows(case: Case, est: dict, inputs: dict, vehicle: VehicleParams, mass_method: str,
                       slope_method: str) -> tuple[list, dict]:
-    inputs = _read_longitudinal_inputs(case.bag)
     rows: list[dict] = []
     series: dict = {}
     gt_slope, gt_mass = est.get(T.GT_ROAD_SLOPE), est.get(T.GT_MASS)
@@ -315,7 +386,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
         raise ValueError(f"unknown case group(s) {unknown} (known: {', '.join(CASE_BUILDERS)})")
     methods = _shipped_methods()
     all_cases = [c for g in groups for c in CASE_BUILDERS[g](out / "bags", quick=quick)]
-    rows, replays, consistency = [], [], []
+    rows, replays, consistency, motion = [], [], [], []
     for case in all_cases:
         run_dir = out / "runs" / case.name
         estimates = run_dir / "estimates"
@@ -331,6 +402,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
         vehicle = load_vehicle_params(case.vehicle)
         case_methods = _shipped_methods(case.params)
         est = _read_estimates(estimates)     # once: both kinds score the same recording
+        inputs = _read_sensor_inputs(case.bag)
         consistency += consistency_rows(case, est)
         series: dict = {}
         if "lateral" in case.kinds:
@@ -338,16 +410,17 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
             rows += r
             series.update(s)
         if "longitudinal" in case.kinds:
-            r, s = longitudinal_rows(case, est, vehicle, case_methods["mass"], case_methods["road_slope"])
+            r, s = longitudinal_rows(case, est, inputs, vehicle, case_methods["mass"], case_methods["road_slope"])
             rows += r
             series.update(s)
+        motion += motion_rows(case, est, inputs, vehicle, case_methods["vehicle_state"])
         _plot(case, series, out / f"{case.name}.png")
         replays.append({"case": case.name, "source": case.source, "bag": str(case.bag),
                         "vehicle": str(case.vehicle), "params": list(case.params),
                         "independent": case.independent, "notes": case.notes,
                         "lossless": stats.lossless, "wall_s": time.monotonic() - wall})
     result = {"params": "params/estimation.yaml", "methods": methods, "warmup_s": WARMUP_S,
-              "quick": quick, "cases": replays, "rows": rows, "consistency": consistency}
+              "quick": quick, "cases": replays, "rows": rows, "motion": motion, "consistency": consistency}
     (out / "validation.json").write_text(json.dumps(result, indent=2, default=float) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(format_table(result) + "\n", encoding="utf-8")
     return result
@@ -379,21 +452,29 @@ def _plot(case: Case, series: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def format_table(result: dict) -> str:
+def _rows_table(rows: list[dict]) -> list[str]:
     def num(x, spec=".3f"):
         return format(x, spec) if x is not None and math.isfinite(x) else "n/a"
 
     lines = ["| case | quantity | estimator | MAE | RMSE | baseline | baseline MAE | baseline RMSE | ratio |",
              "| --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: |"]
-    for r in result["rows"]:
+    for r in rows:
         case = r["case"] + ("" if r["independent"] else " (ours)")
         lines.append(f"| {case} | {r['quantity']} [{r['unit']}] | {r['estimator']} | {num(r['ours']['mae'])} | "
                      f"{num(r['ours']['rmse'])} | {r['baseline']} | {num(r['base']['mae'])} | "
                      f"{num(r['base']['rmse'])} | {num(r['ratio'], '.2f')} |")
+    return lines
+
+
+def format_table(result: dict) -> str:
+    lines = _rows_table(result["rows"])
     lines.append("")
     lines.append("ratio = our RMSE / the baseline's (below 1: ours better); mass rows in % of the true mass, "
                  f"over the last half; other metrics after the first {result['warmup_s']:g} s; shipped methods: "
                  + ", ".join(f"{k} {v}" for k, v in result["methods"].items()))
+    if result.get("motion"):
+        lines += ["", "The fusion's and the vehicle state's motion outputs against the raw sensors:", ""]
+        lines += _rows_table(result["motion"])
     if result.get("consistency"):
         lines += ["", format_consistency(result["consistency"])]
     return "\n".join(lines)
