@@ -278,25 +278,39 @@ def test_innovation_gate_drops_an_inconsistent_network_output():
     assert ok.update(10.0, 0.01, 1.0 / 1510.0, (0.05 / 1510.0) ** 2, 0.4, gate_sigma=4.0) is True
 
 
-def test_a_network_bias_state_keeps_a_biased_network_from_pulling_the_mass():
-    """A network that reads 20 % heavy on every output (a truck that is not the training
-    truck) at low excitation: the paper's independent outputs take the mass to the network's
-    value with a tiny variance; with the network's lasting error as a state the speed dynamics
-    decide, and the error lies within its sigma."""
-    truck = load_vehicle_params(PARAMS_DIR / "heavy_truck.yaml")
-    mass, dt, steps = 36000.0, 0.01, 20000
-    rng = np.random.default_rng(0)
-    v = 22.0
-    theta0 = 1.0 / 28000.0
-    filters = {bias: AdaptiveEKF(np.array([v, theta0]), np.diag([1.0, theta0 ** 2]), (bias * theta0) ** 2)
-               for bias in (0.0, 0.26)}
+HEAVY_TRUCK = load_vehicle_params(PARAMS_DIR / "heavy_truck.yaml")
+CRUISE_MASS, CRUISE_DT, CRUISE_V0, NETWORK_PRIOR_MASS = 36000.0, 0.01, 22.0, 28000.0
+
+
+def _cruise_with_a_heavy_network(seed: int, steps: int = 20000):
+    """A 36 t truck cruising at low excitation and a network that reads it 20 % heavy on every
+    output (a truck that is not the training truck): per step (k, drive input, measured speed,
+    network mass)."""
+    truck, mass, dt = HEAVY_TRUCK, CRUISE_MASS, CRUISE_DT
+    rng = np.random.default_rng(seed)
+    v = CRUISE_V0
     for k in range(steps):
         drag = 0.5 * truck.air_density * truck.drag_area * v * v
         force = mass * (truck.gravity * truck.rolling_resistance + 0.05 * math.sin(2.0 * math.pi * k * dt / 20.0))
         u = DriveInput(force + drag, 0.0, 0.0)
         v += longitudinal_accel(v, 1.0 / mass, u, truck) * dt
         v_meas = v + rng.normal(0.0, 0.05)
-        m_nn = 1.2 * mass * (1.0 + rng.normal(0.0, 0.02))
+        yield k, u, v_meas, 1.2 * mass * (1.0 + rng.normal(0.0, 0.02))
+
+
+def _filters_with_network_bias(*biases: float) -> dict[float, AdaptiveEKF]:
+    theta0 = 1.0 / NETWORK_PRIOR_MASS
+    return {bias: AdaptiveEKF(np.array([CRUISE_V0, theta0]), np.diag([1.0, theta0 ** 2]), (bias * theta0) ** 2)
+            for bias in biases}
+
+
+def test_a_network_bias_state_keeps_a_biased_network_from_pulling_the_mass():
+    """The paper's independent outputs take the mass to a biased network's value with a tiny
+    variance; with the network's lasting error as a state the speed dynamics decide, and the
+    error lies within its sigma."""
+    truck, mass, dt = HEAVY_TRUCK, CRUISE_MASS, CRUISE_DT
+    filters = _filters_with_network_bias(0.0, 0.26)
+    for k, u, v_meas, m_nn in _cruise_with_a_heavy_network(0):
         for bias, ekf in filters.items():
             theta = ekf.x[1]
             q = [0.05 ** 2 * dt, (2e-4 * theta) ** 2 * dt]
@@ -322,21 +336,10 @@ def test_the_effective_tau_is_the_tau_in_use_and_falls_as_a_lasting_network_erro
     """Without the bias state a network output's gain on 1/m is the paper's for its tau; with it,
     a network that reads 20 % heavy throughout loses its pull on the mass as the bias takes up
     its error (tau' of :func:`effective_tau`)."""
-    truck = load_vehicle_params(PARAMS_DIR / "heavy_truck.yaml")
-    mass, dt, steps, tau = 36000.0, 0.01, 20000, 0.5
-    rng = np.random.default_rng(1)
-    v = 22.0
-    theta0 = 1.0 / 28000.0
-    filters = {bias: AdaptiveEKF(np.array([v, theta0]), np.diag([1.0, theta0 ** 2]), (bias * theta0) ** 2)
-               for bias in (0.0, 0.3)}
+    truck, dt, tau = HEAVY_TRUCK, CRUISE_DT, 0.5
+    filters = _filters_with_network_bias(0.0, 0.3)
     seen: dict[float, list[float]] = {0.0: [], 0.3: []}
-    for k in range(steps):
-        drag = 0.5 * truck.air_density * truck.drag_area * v * v
-        force = mass * (truck.gravity * truck.rolling_resistance + 0.05 * math.sin(2.0 * math.pi * k * dt / 20.0))
-        u = DriveInput(force + drag, 0.0, 0.0)
-        v += longitudinal_accel(v, 1.0 / mass, u, truck) * dt
-        v_meas = v + rng.normal(0.0, 0.05)
-        m_nn = 1.2 * mass * (1.0 + rng.normal(0.0, 0.02))
+    for k, u, v_meas, m_nn in _cruise_with_a_heavy_network(1):
         for bias, ekf in filters.items():
             theta = ekf.x[1]
             ekf.predict(u, dt, np.diag([0.05 ** 2 * dt, (2e-4 * theta) ** 2 * dt] + ([0.0] if ekf.with_bias else [])),
