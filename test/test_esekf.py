@@ -327,6 +327,26 @@ def test_a_correlated_speed_error_weighs_2_tau_over_the_spacing():
     np.testing.assert_allclose(correlated.covariance, white.covariance, rtol=1e-12, atol=1e-15)
 
 
+def test_without_gnss_the_forward_velocity_is_not_published_below_the_can_speeds_own_error():
+    """A 1 km/h quantisation offset lasts while the speed stays in one step: without GNSS no
+    averaging of the CAN speed removes it, so the published forward variance keeps the speed's
+    stated variance as its floor; with a fix in the last seconds the filter's own holds."""
+    variance = (1.0 / 3.6) ** 2 / 12.0
+    ekf, t = _aligned_filter(speed_error_correlation_s=1.0)
+    f, w = _static_imu()
+    for i in range(1, 2001):                                  # 10 s of IMU at 200 Hz, speed at 100 Hz
+        ekf.process_imu(t + i * 0.005, f, w + 0.001)
+        if i % 2 == 0:
+            ekf.update_speed(t + i * 0.005, 0.0, variance)
+    _, H = ekf._body_speed_rows([0, 1, 2])
+    own = float((H @ ekf.covariance @ H.T)[0, 0])
+    assert own < 0.5 * variance                               # the filter alone: too sure
+    assert not ekf.gnss_aided and ekf.velocity_body_covariance[0, 0] == pytest.approx(variance)
+    t += 10.0
+    ekf.update_gnss(t, np.zeros(3))
+    assert ekf.gnss_aided and ekf.velocity_body_covariance[0, 0] < 0.5 * variance
+
+
 def test_alignment_needs_standstill_and_hint_works():
     ekf = FusionEKF()
     f, w = _static_imu()

@@ -65,7 +65,9 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
         roll, pitch, yaw = euler_from_quat(np.array([q.x, q.y, q.z, q.w]))
         return {"x": pos.x, "y": pos.y, "vx": tw.linear.x, "vy": tw.linear.y,
                 "speed": math.hypot(tw.linear.x, tw.linear.y),
-                "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw)}
+                "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw),
+                # REP-103 6x6 row-major: twist (vx, ...) and pose (..., roll, pitch, yaw)
+                "var_vx": float(msg.twist.covariance[0]), "var_pitch": float(msg.pose.covariance[28])}
     return None
 
 
@@ -370,6 +372,9 @@ CONSISTENCY_SPEC = (
     ("vy", "estimation/vehicle_state", "vy", "var_vy", None, topics.GT_VEHICLE_STATE, "vy", "linear", "m/s", 1.0),
     ("yaw_rate", "estimation/vehicle_state", "yaw_rate", "var_yaw_rate", None, topics.GT_VEHICLE_STATE,
      "yaw_rate", "linear", "deg/s", 180.0 / math.pi),
+    ("fusion_vx", "estimation/odometry", "vx", "var_vx", None, topics.GT_ODOMETRY, "vx", "linear", "m/s", 1.0),
+    ("fusion_pitch", "estimation/odometry", "pitch", "var_pitch", None, topics.GT_ODOMETRY, "pitch", "linear",
+     "deg", 180.0 / math.pi),
 )
 
 

@@ -168,6 +168,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._t_gnss_applied: float | None = None   # last fix that updated the navigation state
         self._t_speed: float | None = None
         self._last_speed: float | None = None
+        self._speed_variance: float | None = None   # the last CAN speed's stated variance
         self._last_gnss: np.ndarray | None = None
         self._t_nh = -math.inf
         self._a_lp = np.zeros(3)      # low-passed gravity-free acceleration (ENU)
@@ -563,6 +564,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         if not self._admit("speed", t, math.isfinite(s) and math.isfinite(r) and r > 0, self._t_speed):
             return False
         spacing = t - self._t_speed if self._t_speed is not None else math.inf
+        self._speed_variance = r
         r = white_equivalent_variance(r, self.config.speed_error_correlation_s, spacing)
         self._t_speed = t
         self._last_speed = s
