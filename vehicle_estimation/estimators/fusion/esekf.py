@@ -194,13 +194,6 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         return self.status == STATUS_RUNNING
 
     @property
-    def gnss_aided(self) -> bool:
-        """A valid fix has arrived within ``gnss_aiding_timeout_s``: the bias walks as in the
-        paper (while the first fixes fix the heading too: they update the state seconds later)."""
-        return (self._t_gnss is not None and self._t is not None
-                and self._t - self._t_gnss <= self.config.gnss_aiding_timeout_s)
-
-    @property
     def navigating(self) -> bool:
         """Aligned: attitude, velocity, biases and grade are estimated.
 

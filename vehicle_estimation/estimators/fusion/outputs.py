@@ -44,6 +44,8 @@ class FusionOutputs:
     _bg: np.ndarray
     _P: np.ndarray
     _eye3: np.ndarray
+    _t: float | None
+    _t_gnss: float | None
     _t_gnss_applied: float | None
     _speed_variance: float | None
     _body_speed_rows: Callable[[list[int]], tuple]
@@ -64,8 +66,10 @@ class FusionOutputs:
 
     @property
     def gnss_aided(self) -> bool:
-        """A fix aids the filter now (:class:`FusionEKF` says when)."""
-        raise NotImplementedError
+        """A valid fix has arrived within ``gnss_aiding_timeout_s``: the bias walks as in the
+        paper (while the first fixes fix the heading too: they update the state seconds later)."""
+        return (self._t_gnss is not None and self._t is not None
+                and self._t - self._t_gnss <= self.config.gnss_aiding_timeout_s)
 
     @property
     def accel_bias_observed(self) -> bool:
