@@ -204,3 +204,23 @@ def test_anti_outlier_ukf_beats_the_plain_ukf_and_ekf_on_outliers(dlc_drive):
     # and the paper's Table-2 targets for the proposed method's core
     assert res["aoukf"]["mae"]["vx"] < 0.0465 and res["aoukf"]["mae"]["vy"] < 0.142
     assert res["aoukf"]["mae"]["r"] < 0.0179
+
+
+@pytest.mark.parametrize("channels, follows_gyro", [(VehicleStateAOUKF.measurement_channels, True),
+                                                    (("ax", "ay", "r"), False)])
+def test_a_known_ay_noise_weighs_the_ay_and_not_the_yaw_rate(channels, follows_gyro):
+    """The state node adds the fusion roll's error to the roll-compensated ay as a known noise.
+    The AO-UKF measures [ay, r, vx] (ax is its input), so the noise belongs on its channel 0;
+    written on the step's [ax, ay, r] layout, as it once was, it landed on the yaw rate, and the
+    filter weighed its gyro at nothing (the Stanford drive with vibration: 3 deg/s RMS off at a
+    published sigma of 0.6). The second case is that mistake, and the gyro is then not followed."""
+    est = VehicleStateAOUKF(SEDAN)
+    est.measurement_channels = channels
+    r_true = 0.2    # the gyro turns while the steering says straight: only the gyro knows
+    for k in range(300):
+        est.set_known_noise(ay=0.5)
+        est.step(0.01 * k, _inputs(15.0), [0.0, 15.0 * r_true if k >= 100 else 0.0, r_true if k >= 100 else 0.0])
+    noise = np.diag(est._filter.known_noise)
+    assert noise[list(channels).index("ay")] == 0.5
+    # Followed: within 0.03 rad/s (the model, steered straight, still contests); not: ~0.
+    assert (abs(est.x[2] - r_true) < 0.5 * r_true) == follows_gyro

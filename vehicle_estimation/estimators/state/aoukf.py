@@ -167,6 +167,8 @@ class VehicleStateAOUKF(VehicleStateCore):
     """
 
     _filter: AdditiveNoiseFilter
+    #: Sec. 2.3's observation ``[ay, r]`` and the wheel-speed ``vx`` (:meth:`_h`).
+    measurement_channels = ("ay", "r", "vx")
 
     def __init__(self, params: VehicleParams, config: Optional[AOUKFConfig] = None,
                  correction: Optional["BPCorrection"] = None):

@@ -139,13 +139,22 @@ class VehicleStateCore(StepGuard, ABC):
     #: fixed ``R`` already has.
     learns_measurement_noise = False
 
+    #: What each channel of the filter's measurement is, in order: the step's ``z = [ax, ay, r]``
+    #: itself for the paper-004 filters; a core whose filter measures something else (the
+    #: AO-UKF: ``[ay, r, vx]``, with ax a model input) says so, so that a known noise reaches
+    #: the channel it belongs to.
+    measurement_channels: tuple[str, ...] = ("ax", "ay", "r")
+
     def set_known_noise(self, ax: float = 0.0, ay: float = 0.0, r: float = 0.0) -> None:
         """Known variances of the step's ``z = [ax, ay, r]`` on top of the filter's (learnt)
         ``R`` from the next update on (a non-finite or non-positive one counts as 0; all 0
-        removes them). The owner sets them from its inputs' own uncertainty: the fusion roll's
-        error enters the roll-compensated ay one for one, and the IMU's stated noise floors
-        what a filter that learns ``R`` learns."""
-        values = [float(v) if math.isfinite(float(v)) and float(v) > 0.0 else 0.0 for v in (ax, ay, r)]
+        removes them), each on the filter's channel of that name (:attr:`measurement_channels`;
+        a quantity the filter does not measure has none). The owner sets them from its inputs'
+        own uncertainty: the fusion roll's error enters the roll-compensated ay one for one, and
+        the IMU's stated noise floors what a filter that learns ``R`` learns."""
+        named = {"ax": ax, "ay": ay, "r": r}
+        values = [float(named.get(name, 0.0)) for name in self.measurement_channels]
+        values = [v if math.isfinite(v) and v > 0.0 else 0.0 for v in values]
         if not any(values):
             self._filter.known_noise = None
             return
