@@ -74,10 +74,6 @@ class RollAccelerationTerm:
         self._sum, self._count, self._last = 0.0, 0, None
 
 
-#: Index of the lateral specific force in every core's ``z = [ax, ay, r]``.
-AY_CHANNEL = 1
-
-
 @dataclasses.dataclass(frozen=True)
 class ModelErrorSettings:
     """Model errors that no filter represents and that every core adds to its published
