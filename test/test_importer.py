@@ -269,4 +269,7 @@ def test_stanford_command_smoke(tmp_path):
     assert ckf["lossless"] and ckf["metrics"]["sideslip"]["n"] > 500
     assert ckf["metrics"]["sideslip"]["rmse"] < 2.0          # deg
     assert ckf["metrics"]["vx"]["rmse"] < 1.0                # m/s, from the synthesised wheel speeds
+    # every published state variance is checked against the reference (issue 17)
+    assert set(ckf["consistency"]) == {"sideslip", "vy", "yaw_rate"}
+    assert all(c["n"] > 500 and 0.0 <= c["within_2sigma"] <= 1.0 for c in ckf["consistency"].values())
     assert (out / "comparison.png").is_file()

@@ -193,6 +193,18 @@ def _final_diagnostics(bag: Path) -> dict[str, str]:
     return last
 
 
+#: The state estimates whose published variance the comparison checks against the reference.
+CHECKED = ("sideslip", "vy", "yaw_rate")
+
+
+def _consistency(bag: Path, warmup_s: float) -> dict[str, dict[str, float]]:
+    """Errors against the published sigma (share within 1/2/3 sigma, NEES, and over the samples
+    flagged converged) of each :data:`CHECKED` estimate, after the warm-up, as ``report`` does."""
+    from vehicle_estimation.evaluation.report import WANTED, consistency_group, read_bag
+    checks, _ = consistency_group(read_bag(bag, WANTED), warmup_s)
+    return {name: values for name, values in (checks or {}).items() if name in CHECKED}
+
+
 def _scaled(q: dict[str, dict]) -> dict[str, dict]:
     """Metrics in report units: sideslip deg, yaw rate deg/s, speeds m/s."""
     scale = {"sideslip": 180.0 / math.pi, "yaw_rate": 180.0 / math.pi, "vy": 1.0, "vx": 1.0}
@@ -340,6 +352,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
             est = _read_estimates(estimates)
             rows_out.append({"name": label, "filter": name, "speed": SPEED_MODES[speed][0],
                              "metrics": _scaled(_quantities(t, est, ref, start)),
+                             "consistency": _consistency(estimates, warmup_s),
                              "lossless": stats.lossless, "replay_wall_s": stats.wall_s,
                              "replay_speed_x": stats.bag_s / stats.wall_s if stats.wall_s > 0 else math.nan,
                              "state_params": state,
@@ -404,6 +417,22 @@ def format_table(result: dict) -> str:
         lines.append(f"{name[:44]:44s} " + " ".join(
             f"{format(by[b], '.3f') if by.get(b) is not None and math.isfinite(by[b]) else 'n/a':>16s}"
             for b in bands))
+    lines.append("")
+    lines.append(f"{'within 2 sigma / NEES of the published variance':44s} " + " ".join(
+        f"{name:>16s}" for name in CHECKED) + f" {'sideslip flagged':>17s}")
+    for row in result["rows"]:
+        checks = row.get("consistency")
+        if not checks:
+            continue
+        cells = []
+        for name in CHECKED:
+            c = checks.get(name, {})
+            share, nees = c.get("within_2sigma", math.nan), c.get("nees", math.nan)
+            cells.append(f"{format(100 * share, '.0f') + ' % / ' + format(nees, '.2f') if math.isfinite(share) else 'n/a':>16s}")
+        flagged = checks.get("sideslip", {}).get("converged_share", math.nan)
+        flagged_text = f"{100 * flagged:.0f} %" if math.isfinite(flagged) else "n/a"
+        lines.append(f"{row['filter'] + ' / ' + row['speed']:44.44s} " + " ".join(cells) + f" {flagged_text:>17s}")
+    lines.append("honest: 95 % within 2 sigma, NEES 1 (above 1: the variance is too small)")
     lines.append(f"{result['samples']} samples, {result['duration_s']:.0f} s; metrics after the first "
                  f"{result['warmup_s']:.0f} s; noise R: {result['noise']}")
     return "\n".join(lines)
