@@ -197,11 +197,12 @@ def _final_diagnostics(bag: Path) -> dict[str, str]:
 CHECKED = ("sideslip", "vy", "yaw_rate")
 
 
-def _consistency(bag: Path, warmup_s: float) -> dict[str, dict[str, float]]:
+def _consistency(data: dict, warmup_s: float) -> dict[str, dict[str, float]]:
     """Errors against the published sigma (share within 1/2/3 sigma, NEES, and over the samples
-    flagged converged) of each :data:`CHECKED` estimate, after the warm-up, as ``report`` does."""
-    from vehicle_estimation.evaluation.report import WANTED, consistency_group, read_bag
-    checks, _ = consistency_group(read_bag(bag, WANTED), warmup_s)
+    flagged converged) of each :data:`CHECKED` estimate in ``data`` (:func:`_read_recording`),
+    after the warm-up, as ``report`` does."""
+    from vehicle_estimation.evaluation.report import consistency_group
+    checks, _ = consistency_group(data, warmup_s)
     return {name: values for name, values in (checks or {}).items() if name in CHECKED}
 
 
@@ -221,9 +222,14 @@ def _write_layer(path: Path, state_params: dict[str, Any]) -> Path:
     return path
 
 
-def _read_estimates(bag: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _read_recording(bag: Path) -> dict:
+    """The recorded state estimates and the reference they are checked against, read once."""
     from vehicle_estimation.evaluation.report import read_bag
-    data = read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP])
+    return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.GT_VEHICLE_STATE, T.GT_SIDESLIP])
+
+
+def _estimates(data: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(t, value) of each estimate in a recording (:func:`_read_recording`)."""
     out = {}
     state = data.get(T.VEHICLE_STATE)
     if state is not None:
@@ -349,10 +355,11 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
                 raise RuntimeError(f"replay {label} failed: {exc}; logs in {run_dir / 'logs'}") from exc
             if progress:
                 print_stats(stats)
-            est = _read_estimates(estimates)
+            recording = _read_recording(estimates)
+            est = _estimates(recording)
             rows_out.append({"name": label, "filter": name, "speed": SPEED_MODES[speed][0],
                              "metrics": _scaled(_quantities(t, est, ref, start)),
-                             "consistency": _consistency(estimates, warmup_s),
+                             "consistency": _consistency(recording, warmup_s),
                              "lossless": stats.lossless, "replay_wall_s": stats.wall_s,
                              "replay_speed_x": stats.bag_s / stats.wall_s if stats.wall_s > 0 else math.nan,
                              "state_params": state,
@@ -388,6 +395,10 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
 
 
 # --------------------------------------------------------------------- output
+def _label(row: dict) -> str:
+    return row["name"] if row["filter"] == "baseline" else f"{row['filter']} / {row['speed']}"
+
+
 def format_table(result: dict) -> str:
     head = (f"{'estimator / speed source':44s} {'beta MAE':>8s} {'beta RMSE':>9s} {'vs base':>8s} "
             f"{'vy MAE':>7s} {'vy RMSE':>7s} {'r MAE':>6s} {'r RMSE':>6s} {'vx RMSE':>7s}")
@@ -399,7 +410,7 @@ def format_table(result: dict) -> str:
         return format(value, spec) if value is not None and math.isfinite(value) else "n/a"
 
     for row in result["rows"]:
-        name = row["name"] if row["filter"] == "baseline" else f"{row['filter']} / {row['speed']}"
+        name = _label(row)
         change = row.get("sideslip_rmse_change_percent")
         change = "—" if row["filter"] == "baseline" else (f"{change:+.1f}" if change is not None else "n/a")
         lines.append(f"{name[:44]:44s} {f(row, 'sideslip', 'mae', '.3f'):>8s} {f(row, 'sideslip', 'rmse', '.3f'):>9s} "
@@ -412,7 +423,7 @@ def format_table(result: dict) -> str:
     lines.append(f"{'sideslip RMSE [deg] by |ay| band [m/s^2]':44s} " + " ".join(
         f"{b + ' (' + format(100 * (shares.get(b + ' share') or 0), '.0f') + '%)':>16s}" for b in bands))
     for row in result["rows"]:
-        name = row["name"] if row["filter"] == "baseline" else f"{row['filter']} / {row['speed']}"
+        name = _label(row)
         by = row.get("sideslip_rmse_by_ay_band", {})
         lines.append(f"{name[:44]:44s} " + " ".join(
             f"{format(by[b], '.3f') if by.get(b) is not None and math.isfinite(by[b]) else 'n/a':>16s}"
@@ -431,7 +442,7 @@ def format_table(result: dict) -> str:
             cells.append(f"{format(100 * share, '.0f') + ' % / ' + format(nees, '.2f') if math.isfinite(share) else 'n/a':>16s}")
         flagged = checks.get("sideslip", {}).get("converged_share", math.nan)
         flagged_text = f"{100 * flagged:.0f} %" if math.isfinite(flagged) else "n/a"
-        lines.append(f"{row['filter'] + ' / ' + row['speed']:44.44s} " + " ".join(cells) + f" {flagged_text:>17s}")
+        lines.append(f"{_label(row):44.44s} " + " ".join(cells) + f" {flagged_text:>17s}")
     lines.append("honest: 95 % within 2 sigma, NEES 1 (above 1: the variance is too small)")
     lines.append(f"{result['samples']} samples, {result['duration_s']:.0f} s; metrics after the first "
                  f"{result['warmup_s']:.0f} s; noise R: {result['noise']}")
