@@ -252,7 +252,7 @@ def test_baseline_kf_tracks_a_linear_single_track_model():
 
 
 @pytest.mark.skipif(not (STANFORD_DIR / "t.txt").is_file(), reason="Stanford data not available")
-def test_stanford_command_smoke(tmp_path):
+def test_stanford_command_smoke(tmp_path, capfd):
     """`vehicle-estimation stanford` on the first 8 s: import, replay (ckf, assumed speed),
     baseline, table, JSON and PNG."""
     pytest.importorskip("rclpy")
@@ -272,4 +272,8 @@ def test_stanford_command_smoke(tmp_path):
     # every published state variance is checked against the reference (issue 17)
     assert set(ckf["consistency"]) == {"sideslip", "vy", "yaw_rate"}
     assert all(c["n"] > 500 and 0.0 <= c["within_2sigma"] <= 1.0 for c in ckf["consistency"].values())
+    # the table says how much of the flagged sideslip lies beyond 3 sigma (issue 17: at most 1 %)
+    beyond = ckf["consistency"]["sideslip"]["converged_beyond_3sigma"]
+    row = [line for line in capfd.readouterr().out.splitlines() if line.startswith("ckf / ASSUMED")][-1]
+    assert row.rstrip().endswith(f"% / {100 * beyond:.1f} %"), row
     assert (out / "comparison.png").is_file()

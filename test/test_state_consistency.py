@@ -1,10 +1,11 @@
 """Published vehicle-state variances against truth that our simulator did not make.
 
-The state filters take the tyres' cornering stiffness as exact; the covariance a core publishes
-adds the vy error that a stiffness off by ``tyre_stiffness_std`` causes (``ModelErrorSettings``).
-On a drive of the CommonRoad multi-body car (Pacejka tyres, not the filters' Dugoff model) the
-shipped tuning must put 90 % or more of the vy errors within the published 2 sigma, and the
-check must be able to fail: with that variance halved, or without the model-error term, it does.
+The state filters take the tyres' cornering stiffness as exact and the road as level across; the
+covariance a core publishes adds the vy error that a stiffness off by ``tyre_stiffness_std`` and a
+road bank of ``road_bank_std_deg`` cause (``ModelErrorSettings``). On a drive of the CommonRoad
+multi-body car (Pacejka tyres, not the filters' Dugoff model; a level road) the shipped tuning
+must put 90 % or more of the vy errors within the published 2 sigma, and the check must be able
+to fail: with that variance halved, or without the stiffness term, it does.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ WARMUP_S = 5.0
 def test_model_error_widens_the_published_vy_variance_only():
     vehicle = VehicleParams()
     plain = build_state_filter("vbackf", vehicle)
-    widened = build_state_filter("vbackf", vehicle, dataclasses.replace(StateSettings.defaults(), tyre_stiffness_std=0.3))
+    widened = build_state_filter("vbackf", vehicle, dataclasses.replace(StateSettings.defaults(), tyre_stiffness_std=0.3,
+                                                                          road_bank_std_deg=2.0))
     x = np.array([20.0, 0.4, 0.2, 0.0, 4.0])
     for k in range(200):
         inputs = VehicleInputs(steer_angle=0.03, wheel_speeds=free_rolling_wheel_speeds(x, 0.03, vehicle))
@@ -36,9 +38,13 @@ def test_model_error_widens_the_published_vy_variance_only():
     vy, r = widened.x[1], widened.x[2]
     added = widened.P - plain.P
     expected = np.zeros((5, 5))
-    expected[1, 1] = (0.3 * (vy - vehicle.lr * r)) ** 2
+    stiffness = (0.3 * (vy - vehicle.lr * r)) ** 2
+    # a 2 deg bank: the rear axle holds l_f/L of m g sin(2 deg) more than ay says
+    rear_force = vehicle.mass * vehicle.gravity * np.sin(np.radians(2.0)) * vehicle.lf / vehicle.wheelbase
+    bank = (widened.x[0] * rear_force / (2.0 * vehicle.cornering_stiffness_rear)) ** 2
+    expected[1, 1] = stiffness + bank
     np.testing.assert_allclose(added, expected, rtol=1e-12, atol=1e-15)
-    assert expected[1, 1] > 1e-4                      # the rear axle slips: the term matters here
+    assert stiffness > 1e-4 and bank > 1e-4           # the rear axle slips, and fast: both matter here
     assert widened.sideslip_variance > plain.sideslip_variance
     np.testing.assert_array_equal(plain.filter.P, widened.filter.P)   # the filter's own is untouched
 
@@ -72,13 +78,17 @@ def _vy_errors_and_variance(drive, settings):
 def test_published_vy_variance_is_honest_on_a_foreign_car(slalom):
     from vehicle_estimation.validation.lateral import shipped_state_settings
     shipped = shipped_state_settings()
-    assert shipped.tyre_stiffness_std > 0.0
+    assert shipped.tyre_stiffness_std > 0.0 and shipped.road_bank_std_deg > 0.0
     error, variance = _vy_errors_and_variance(slalom, shipped)
+    assert float(np.mean(error <= 2.0 * np.sqrt(variance))) >= 0.90
+    # this simulator's road is level: without the bank's share the stiffness term alone holds,
+    level = dataclasses.replace(shipped, road_bank_std_deg=0.0)
+    error, variance = _vy_errors_and_variance(slalom, level)
     within = float(np.mean(error <= 2.0 * np.sqrt(variance)))
     assert within >= 0.90, within
-    # the check can fail: a variance half as large, or one without the model error, is caught
+    # and the check can fail: a variance half as large, or one without the model error, is caught
     assert float(np.mean(error <= 2.0 * np.sqrt(0.5 * variance))) < 0.90
-    error, variance = _vy_errors_and_variance(slalom, dataclasses.replace(shipped, tyre_stiffness_std=0.0))
+    error, variance = _vy_errors_and_variance(slalom, dataclasses.replace(level, tyre_stiffness_std=0.0))
     assert float(np.mean(error <= 2.0 * np.sqrt(variance))) < 0.90
 
 

@@ -80,6 +80,8 @@ class StateEstimator(Protocol):
     extra_vx_noise_density: float
     #: Relative cornering-stiffness uncertainty whose vy error the published P carries.
     tyre_stiffness_std: float
+    #: Std of the road bank [rad] whose vy error the published P carries.
+    road_bank_std: float
 
     @property
     def x(self) -> np.ndarray: ...

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import math
 from typing import Any, Callable, Mapping
 
 from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
@@ -142,6 +143,7 @@ class StateSettings:
     front_axle_force_std: float = 0.0
     rear_axle_force_std: float = 0.0
     tyre_stiffness_std: float = 0.0
+    road_bank_std_deg: float = 0.0
 
     @classmethod
     def defaults(cls) -> "StateSettings":
@@ -203,6 +205,7 @@ def _paper004_config(settings: StateSettings) -> Any:
 def _with_model_error(core: StateEstimator, settings: StateSettings) -> StateEstimator:
     """``core`` publishing the model error of ``settings`` (every filter alike)."""
     core.tyre_stiffness_std = settings.tyre_stiffness_std
+    core.road_bank_std = math.radians(settings.road_bank_std_deg)
     return core
 
 

@@ -166,7 +166,8 @@ class StateNode(EstimatorNode):
             tuple(self.p0_diag), tuple(self.q_diag), tuple(self.r_diag), self.initial_vx, self.init_from_wheels,
             **{name: self.declare_setting(VehicleStateConfig, name) for name in (
                 "wheel_slip_forces", "wheel_radius_std", "front_axle_force_std", "rear_axle_force_std")},
-            tyre_stiffness_std=self.declare_setting(ModelErrorSettings, "tyre_stiffness_std"))
+            **{name: self.declare_setting(ModelErrorSettings, name) for name in (
+                "tyre_stiffness_std", "road_bank_std_deg")})
         # Fallbacks whose error the published variance carries, so the sideslip may still be
         # flagged converged: the level road (its grade error is vx process noise) and, where the
         # variance carries a stiffness error, the params' mass (a mass off by some share puts

@@ -12,8 +12,8 @@ The paper-004 CKF / VB-ACKF (:mod:`.ckf`, :mod:`.vbackf`) and the paper-002 AO-U
   wheel speeds, and an extra vx process noise (:attr:`extra_vx_noise_density`) that the node
   sets while an input is unknown;
 * report the sideslip of Eq. 14 of paper 004 with its first-order variance;
-* publish a covariance that carries the tyre-stiffness error the filters do not model
-  (:class:`ModelErrorSettings`).
+* publish a covariance that carries the tyre-stiffness error and the road bank the filters do
+  not model (:class:`ModelErrorSettings`).
 
 A core satisfies :class:`~vehicle_estimation.estimators.interfaces.StateEstimator`.
 """
@@ -85,6 +85,12 @@ class ModelErrorSettings:
         "stiffness off by this share moves its slip angle, and vy with it, by this share of the "
         "rear axle's slip velocity vy - l_r r: (std (vy - l_r r))^2 is added to the published vy "
         "variance (0 = paper: the filter's own covariance)", low=0.0, high=1.0)
+    road_bank_std_deg: float = setting(
+        0.0, "Std of the road's cross slope (crown, superelevation, track camber) that no filter "
+        "sees [deg]. On a bank phi the tyres also hold m g sin(phi) against gravity, which a "
+        "kinematic or roll-compensated ay does not show; the rear axle takes l_f/L of it, so its "
+        "slip angle, and vy with it, moves by vx (l_f/L) m g sin(phi) / C_rear: that variance is "
+        "added to the published vy variance (0 = a level road, the paper)", low=0.0, high=15.0)
 
 
 class VehicleStateCore(StepGuard, ABC):
@@ -125,6 +131,8 @@ class VehicleStateCore(StepGuard, ABC):
         self.extra_vx_noise_density = 0.0
         #: :attr:`ModelErrorSettings.tyre_stiffness_std`, set by the owner (the registry's builders).
         self.tyre_stiffness_std = 0.0
+        #: :attr:`ModelErrorSettings.road_bank_std_deg` in radians, set by the owner likewise.
+        self.road_bank_std = 0.0
         #: The per-step validity check by a compiled kernel (set with the filter's kernels).
         self.compiled_checks = False
         self._factor_work = np.empty_like(P0, dtype=float)
@@ -267,13 +275,28 @@ class VehicleStateCore(StepGuard, ABC):
 
     @property
     def P(self) -> np.ndarray:
-        """The covariance of :attr:`x` as published: the filter's, plus on vy the variance of
-        a tyre stiffness off by :attr:`tyre_stiffness_std` (:class:`ModelErrorSettings`)."""
+        """The covariance of :attr:`x` as published: the filter's, plus on vy the variances of
+        a tyre stiffness off by :attr:`tyre_stiffness_std` and of a road bank of
+        :attr:`road_bank_std` (:class:`ModelErrorSettings`); both move the rear slip angle,
+        which the filters take as fixed by the measured ay and yaw rate."""
         P = np.array(self._filter.P, dtype=float)
+        x = self.x              # the published estimate (the AO-UKF's after its output correction)
         if self.tyre_stiffness_std > 0.0:
-            x = self.x          # the published estimate (the AO-UKF's after its output correction)
             P[1, 1] += (self.tyre_stiffness_std * (x[1] - self.params.lr * x[2])) ** 2
+        if self.road_bank_std > 0.0:
+            P[1, 1] += self.bank_vy_std(float(x[0])) ** 2
         return P
+
+    def bank_vy_std(self, vx: float) -> float:
+        """The std of the vy error that a road bank of :attr:`road_bank_std` causes at ``vx``
+        [m/s]. A bank phi leans gravity across the road: the tyres hold ``m g sin(phi)`` that
+        the measured (kinematic, or roll-compensated) ay does not contain; the yaw moment is
+        unchanged (r is measured), so the rear axle carries ``l_f / L`` of it and its slip angle
+        ``(vy - l_r r) / vx`` is off by that force over the axle's stiffness."""
+        p = self.params
+        rear_axle_stiffness = 2.0 * p.cornering_stiffness_rear
+        force = p.mass * p.gravity * math.sin(self.road_bank_std) * p.lf / p.wheelbase
+        return abs(vx) * force / rear_axle_stiffness
 
     @property
     def sideslip(self) -> float:
