@@ -245,6 +245,12 @@ def test_a_lasting_grade_error_is_in_the_published_variance(bias_deg):
         nees = error ** 2 / est.variance
         assert 0.6 < nees < 1.6, f"NEES {nees:.2f}"
         assert not 0.6 < error ** 2 / (0.5 * est.variance) < 1.6    # half the variance: caught
+    # /diagnostics says which part of sigma is which: here nearly all of it the regressor's error
+    residual_sigma, regressor_sigma = (float(v) for v in est.status()[
+        "mass sigma: residuals / regressor errors [kg]"].split("/"))
+    assert residual_sigma ** 2 + regressor_sigma ** 2 == pytest.approx(est.variance, rel=1e-3, abs=0.1)
+    assert regressor_sigma == pytest.approx(math.sqrt(est.bias_variance), abs=0.06)
+    assert regressor_sigma > 10.0 * residual_sigma
 
 
 

@@ -275,8 +275,13 @@ class ForgettingMassEstimator:
                 and abs(window[-1] - window[0]) / mean < self.config.convergence_max_rel_change)
 
     def status(self) -> dict[str, str]:
-        """Method-specific ``/diagnostics`` entries (none for the plain least squares)."""
-        return {}
+        """Method-specific ``/diagnostics`` entries: which share of the published sigma the
+        residuals give and which the regressor's errors (:attr:`bias_variance`)."""
+        residual = self.rls.p * self.residual_variance
+        if not (finite_number(residual) and finite_number(self.bias_variance)):
+            return {}
+        return {"mass sigma: residuals / regressor errors [kg]":
+                f"{math.sqrt(max(residual, 0.0)):.1f} / {math.sqrt(max(self.bias_variance, 0.0)):.1f}"}
 
     # ------------------------------------------------------------------ update
     def _calibrated_accel(self, t: float, vx: float, ax: float, noise_variance: float) -> float:

@@ -254,7 +254,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         return bool(self.config.wind_compensation)
 
     def status(self) -> dict[str, str]:
-        out: dict[str, str] = {}
+        out = super().status()
         if self.wind is None:
             return out
         if self.config.wind_compensation:
