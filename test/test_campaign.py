@@ -17,6 +17,7 @@ def test_quick_campaign_calibrates_and_scores_the_drives(tmp_path, capsys):
     assert campaign.main(args) == 0
     printed = capsys.readouterr().out
     assert "## Calibration" in printed and "## Fig. 13" in printed
+    assert "## Is the published variance honest?" in printed
     result = json.loads((tmp_path / "campaign.json").read_text())
     for name in ("calibration.png", "drives.png", "lambda.png"):
         assert (tmp_path / name).stat().st_size > 10_000
@@ -37,6 +38,10 @@ def test_quick_campaign_calibrates_and_scores_the_drives(tmp_path, capsys):
     assert drives["01"]["wind_off"]["within_5pct"] > 0.9
     assert drives["W4"]["wind_on"]["within_5pct"] >= drives["W4"]["wind_off"]["within_5pct"]
     assert drives["W4"]["wind_est_enu"][0] > 2.5
+    # The 'wind and C_r' estimator's variance against its errors, per drive and over all of them
+    pooled = result["consistency_all_drives"]
+    assert pooled["n"] == sum(d["wind_and_cr"]["consistency"]["n"] for d in drives.values()) > 0
+    assert 0.0 < pooled["converged_share"] <= 1.0 and pooled["nees"] > 0.0
     rows = result["lambda_sequence"]["rows"]
     assert sorted({r["lambda"] for r in rows}) == sorted(campaign.LAMBDAS)
     lag = {r["lambda"]: r["changes"][0]["lag63_min"] for r in rows if not r["wind_compensation"]}

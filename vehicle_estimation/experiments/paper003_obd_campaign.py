@@ -52,6 +52,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from vehicle_estimation.estimators.mass import calibration as cal
+from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.estimators.mass.mass_rls import LongitudinalMassEstimator, MassRLSConfig
 from vehicle_estimation.estimators.mass.update_window import window_edges, window_ids, window_max, window_mean, window_slope
 from vehicle_estimation.contract.vehicle import VehicleParams
@@ -253,18 +254,31 @@ def drive_windows(result: Any, base: VehicleParams, seed: int) -> DriveWindows:
 
 
 def run_core(w: DriveWindows, vehicle: VehicleParams, regression: Sequence[float], *, forgetting: float = 0.9995,
-             wind: bool = False, rolling_resistance: bool = False) -> tuple[np.ndarray, LongitudinalMassEstimator]:
-    """Published mass after every window (the core's output as the node would publish it)."""
+             wind: bool = False, rolling_resistance: bool = False,
+             trace: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, LongitudinalMassEstimator]:
+    """Published mass after every window (the core's output as the node would publish it).
+
+    The core is told the slope's error as the mass node tells it the fusion's (a lasting
+    regressor error of ``SLOPE_NOISE_DEG``, correlated over ``SLOPE_NOISE_TAU``), so that its
+    variance can be checked; with ``trace`` (a dict) the published variance and converged flag
+    after every window go into ``trace['variance']`` and ``trace['converged']``."""
     cfg = MassRLSConfig(forgetting_factor=forgetting, torque_regression=list(regression), wind_compensation=wind,
                         rolling_resistance_estimation=rolling_resistance)
     core = LongitudinalMassEstimator(vehicle, cfg)
     out = np.empty(w.t.size)
+    variance, converged = np.empty(w.t.size), np.zeros(w.t.size, dtype=bool)
+    slope_error_variance = (vehicle.gravity * math.radians(SLOPE_NOISE_DEG)) ** 2
     nan = math.nan
     for k in range(w.t.size):
         core.step(float(w.t[k]), float(w.v[k]), float(w.a[k]), float(w.slope[k]),
                   engine_speed=float(w.engine_speed[k]), engine_load=float(w.engine_load[k]), gear=nan,
-                  brake_torque=float(w.brake[k]), heading=float(w.heading[k]))
+                  brake_torque=float(w.brake[k]), heading=float(w.heading[k]),
+                  regressor_bias_variance=slope_error_variance, regressor_bias_correlation_s=SLOPE_NOISE_TAU)
         out[k] = core.mass
+        if trace is not None:
+            variance[k], converged[k] = core.variance, core.converged
+    if trace is not None:
+        trace.update(variance=variance, converged=converged)
     return out, core
 
 
@@ -343,10 +357,12 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
     windows = _simulate_windows(scenarios, base, jobs)
     converge_m = (3.0 if quick else converge_km) * 1000.0
     rows, traces = [], {}
+    consistency: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     for d, w in zip(drives, windows):
         m_off, _ = run_core(w, fitted, regression)
         m_on, core_on = run_core(w, fitted, regression, wind=True)
-        m_cr, core_cr = run_core(w, fitted, regression, wind=True, rolling_resistance=True)
+        shipped: dict[str, np.ndarray] = {}
+        m_cr, core_cr = run_core(w, fitted, regression, wind=True, rolling_resistance=True, trace=shipped)
         assert core_on.wind is not None and core_cr.wind is not None
         m_off_stats = drive_metrics(m_off, w.true_mass, w.distance, converge_m)
         m_on_stats = drive_metrics(m_on, w.true_mass, w.distance, converge_m)
@@ -357,6 +373,9 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
                "wind_est_std": list(core_on.wind.wind_std),
                "cr_true": d.rolling_factor * base.rolling_resistance, "cr_fitted": fitted.rolling_resistance,
                "cr_est": core_cr.rolling_resistance, "cr_est_std": core_cr.wind.rolling_resistance_offset_std}
+        after = w.distance >= converge_m
+        consistency.append((m_cr[after] - w.true_mass, shipped["variance"][after], shipped["converged"][after]))
+        row["wind_and_cr"]["consistency"] = metrics.consistency(*consistency[-1])
         rows.append(row)
         step = max(1, int(round(20.0 / PERIOD)))
         traces[d.name] = {"km": (w.distance[::step] / 1000.0).tolist(), "off": m_off[::step].tolist(),
@@ -392,6 +411,7 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
     result = {"quick": quick, "road": "ring" if ring else "random", "kinematic_grade": kinematic_grade, "converge_km": converge_m / 1000.0, "calibration": cal_info,
               "calibrated_vehicle": fitted.as_mapping(), "torque_regression": regression,
               "drives": rows, "lambda_sequence": {"drives": seq_names, "rows": lam_rows},
+              "consistency_all_drives": metrics.consistency(*(np.concatenate(x) for x in zip(*consistency))),
               "runtime_s": time.time() - t_start}
     _plot_drives(out / "drives.png", traces)
     _plot_lambda(out / "lambda.png", lam_traces)
@@ -448,6 +468,17 @@ def format_tables(result: dict) -> str:
                      f"{b['max_abs_error_pct']:.1f} % | {_pct(c3['within_5pct'])} | {c3['mean_error_pct']:+.1f} % | "
                      f"{c3['max_abs_error_pct']:.1f} % | {r['cr_est']:.4f} +- {r['cr_est_std']:.4f} (fit {r['cr_fitted']:.4f}, sim {r['cr_true']:.4f}) | "
                      f"({we[0]:+.1f}, {we[1]:+.1f}) true ({r['wind_true_enu'][0]:+.1f}, {r['wind_true_enu'][1]:+.1f}) |")
+    lines += ["", f"## Is the published variance honest? (the 'wind and C_r' estimates; after the first "
+              f"{result['converge_km']:g} km; the core is told the slope's error, {SLOPE_NOISE_DEG:g} deg over "
+              f"{SLOPE_NOISE_TAU:g} s)", "",
+              "| drive | within 1 sigma | within 2 sigma | NEES | flagged converged | converged within 2 sigma | "
+              "converged beyond 3 sigma |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    named = [(r["drive"], r["wind_and_cr"].get("consistency")) for r in result["drives"]]
+    for name, c4 in named + [("all drives", result.get("consistency_all_drives"))]:
+        if c4:
+            lines.append(f"| {name} | {_pct(c4['within_1sigma'], 0)} | {_pct(c4['within_2sigma'], 0)} | "
+                         f"{c4['nees']:.2f} | {_pct(c4['converged_share'], 0)} | "
+                         f"{_pct(c4['converged_within_2sigma'], 0)} | {_pct(c4['converged_beyond_3sigma'])} |")
     seq = result["lambda_sequence"]
     lines += ["", f"## Fig. 13: drives {'-'.join(seq['drives'])} back to back", "",
               "| lambda | wind comp. | load change at km | step | lag to 63 % [min] | [km] | lag to 90 % [min] | [km] | within +-5 % | std of error |",
