@@ -256,19 +256,15 @@ def drive_windows(result: Any, base: VehicleParams, seed: int) -> DriveWindows:
 def run_core(w: DriveWindows, vehicle: VehicleParams, regression: Sequence[float], *, forgetting: float = 0.9995,
              wind: bool = False, rolling_resistance: bool = False,
              trace: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, LongitudinalMassEstimator]:
-    """Published mass after every window (the core's output as the node would publish it).
-
-    The core is told the slope's error as the mass node tells it the fusion's (a lasting
-    regressor error of ``SLOPE_NOISE_DEG``, correlated over ``SLOPE_NOISE_TAU``), so that its
-    variance can be checked; with ``trace`` (a dict) the published variance and converged flag
-    after every window go into ``trace['variance']`` and ``trace['converged']``."""
+    """Published mass after every window (the core's output as the node would publish it). The
+    core is told the slope's error (``SLOPE_NOISE_DEG`` over ``SLOPE_NOISE_TAU``) as the node tells
+    it the fusion's; ``trace`` (a dict) gets the published 'variance' and 'converged' per window."""
     cfg = MassRLSConfig(forgetting_factor=forgetting, torque_regression=list(regression), wind_compensation=wind,
                         rolling_resistance_estimation=rolling_resistance)
     core = LongitudinalMassEstimator(vehicle, cfg)
     out = np.empty(w.t.size)
     variance, converged = np.empty(w.t.size), np.zeros(w.t.size, dtype=bool)
-    slope_error_variance = (vehicle.gravity * math.radians(SLOPE_NOISE_DEG)) ** 2
-    nan = math.nan
+    slope_error_variance, nan = (vehicle.gravity * math.radians(SLOPE_NOISE_DEG)) ** 2, math.nan
     for k in range(w.t.size):
         core.step(float(w.t[k]), float(w.v[k]), float(w.a[k]), float(w.slope[k]),
                   engine_speed=float(w.engine_speed[k]), engine_load=float(w.engine_load[k]), gear=nan,
@@ -373,7 +369,7 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
                "wind_est_std": list(core_on.wind.wind_std),
                "cr_true": d.rolling_factor * base.rolling_resistance, "cr_fitted": fitted.rolling_resistance,
                "cr_est": core_cr.rolling_resistance, "cr_est_std": core_cr.wind.rolling_resistance_offset_std}
-        after = w.distance >= converge_m
+        after = w.distance >= converge_m        # the 'wind and C_r' errors, variances, flags
         consistency.append((m_cr[after] - w.true_mass, shipped["variance"][after], shipped["converged"][after]))
         row["wind_and_cr"]["consistency"] = metrics.consistency(*consistency[-1])
         rows.append(row)
@@ -473,8 +469,8 @@ def format_tables(result: dict) -> str:
               f"{SLOPE_NOISE_TAU:g} s)", "",
               "| drive | within 1 sigma | within 2 sigma | NEES | flagged converged | converged within 2 sigma | "
               "converged beyond 3 sigma |", "| --- | --- | --- | --- | --- | --- | --- |"]
-    named = [(r["drive"], r["wind_and_cr"].get("consistency")) for r in result["drives"]]
-    for name, c4 in named + [("all drives", result.get("consistency_all_drives"))]:
+    for name, c4 in ([(r["drive"], r["wind_and_cr"].get("consistency")) for r in result["drives"]]
+                     + [("all drives", result.get("consistency_all_drives"))]):
         if c4:
             lines.append(f"| {name} | {_pct(c4['within_1sigma'], 0)} | {_pct(c4['within_2sigma'], 0)} | "
                          f"{c4['nees']:.2f} | {_pct(c4['converged_share'], 0)} | "
