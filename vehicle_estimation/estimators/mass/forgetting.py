@@ -82,6 +82,14 @@ MIN_RESIDUAL_PAIRS = 40
 MAX_RESIDUAL_CORRELATION = 0.99
 
 
+def _correlated_sum(spread: float, lever: float, u: float, lam: float, rho: float) -> tuple[float, float]:
+    """One step of ``V_n = sum_j sum_k w_j w_k rho^|n_j - n_k|`` with ``w_k = lambda^(n-k) u_k``:
+    ``(V_n, L_n)`` from ``(V_n-1, L_n-1)``, the lever ``L_n = sum_k w_k rho^(n-k)`` carrying the
+    cross terms (``rho`` the correlation since the previous sample; 0: uncorrelated, V = sum w^2)."""
+    carried = lam * rho * lever
+    return lam * lam * spread + u * u + 2.0 * u * carried, carried + u
+
+
 class RecursiveLeastSquares:
     """Scalar-parameter RLS with exponential forgetting, paper 003 Eqs. (7)-(9).
 
@@ -313,10 +321,15 @@ class ForgettingMassEstimator:
         return max(self._corr_spread / self._white_spread, 1.0)
 
     @property
+    def residual_share(self) -> float:
+        """The residuals' share of :attr:`variance` [kg^2]: p·sigma^2·F (class docstring)."""
+        return self.rls.p * self.residual_variance * self.residual_inflation
+
+    @property
     def variance(self) -> float:
         """Estimated variance of the mass [kg^2] = p·sigma^2·F (correlated residuals) + the
         lasting error's share."""
-        return self.rls.p * self.residual_variance * self.residual_inflation + self.bias_variance
+        return self.residual_share + self.bias_variance
 
     @property
     def converged(self) -> bool:
@@ -348,7 +361,7 @@ class ForgettingMassEstimator:
     def status(self) -> dict[str, str]:
         """Method-specific ``/diagnostics`` entries: which share of the published sigma the
         residuals give and which the regressor's errors (:attr:`bias_variance`)."""
-        residual = self.rls.p * self.residual_variance * self.residual_inflation
+        residual = self.residual_share
         if not (finite_number(residual) and finite_number(self.bias_variance)):
             return {}
         return {"mass sigma: residuals / regressor errors [kg]":
@@ -408,11 +421,10 @@ class ForgettingMassEstimator:
                 self._res_spacing = dt if math.isnan(self._res_spacing) else self._res_spacing + 0.05 * (dt - self._res_spacing)
             self._res_last, self._res_last_t = e, t
         rho = self.residual_correlation
-        carry = lam * rho ** (dt / self._res_spacing) if rho > 0.0 and math.isfinite(dt) and dt > 0.0 \
+        rho_dt = rho ** (dt / self._res_spacing) if rho > 0.0 and math.isfinite(dt) and dt > 0.0 \
             and self._res_spacing > 0.0 else 0.0
-        self._corr_spread = lam * lam * self._corr_spread + phi * phi + 2.0 * phi * carry * self._corr_lever
-        self._corr_lever = carry * self._corr_lever + phi
-        self._white_spread = lam * lam * self._white_spread + phi * phi
+        self._corr_spread, self._corr_lever = _correlated_sum(self._corr_spread, self._corr_lever, phi, lam, rho_dt)
+        self._white_spread, _ = _correlated_sum(self._white_spread, 0.0, phi, lam, 0.0)
 
     def _reject(self, reason: str) -> bool:
         self.rejected[reason] += 1
@@ -437,9 +449,7 @@ class ForgettingMassEstimator:
         tau, dt = regressor_bias_correlation_s, t - self._bias_t
         # rho = exp(-dt / tau): 1 for a bias that lasts (tau infinite, or the first sample)
         rho = math.exp(-dt / tau) if math.isfinite(dt) and dt > 0.0 and tau < math.inf else 1.0
-        carried = lam * rho * self._bias_lever
-        self._bias_spread = lam * lam * self._bias_spread + u * u + 2.0 * u * carried
-        self._bias_lever = carried + u
+        self._bias_spread, self._bias_lever = _correlated_sum(self._bias_spread, self._bias_lever, u, lam, rho)
         self._bias_t = t
         self._track_residual_correlation(t, phi)
         self._window.append(self.rls.theta)
