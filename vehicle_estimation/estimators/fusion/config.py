@@ -43,10 +43,12 @@ class FusionConfig:
     0.05). So the accelerometer bias is held while no valid fix has come for
     ``gnss_aiding_timeout_s``, and every correction of the sum goes into the tilt, which the
     gyro carries between corrections. A bias that no fix has ever observed is only known to
-    its prior (``unaided_accel_bias_sigma``, the typical turn-on bias of a MEMS accelerometer);
-    it enters the grade variance, and the published bias covariance, as a 'consider' term: it
-    is not in the filter's P, because a large P there would move corrections of the sum into
-    the bias (the drift above).
+    its prior; ``unaided_accel_bias_sigma`` enters the grade variance, and the published bias
+    covariance, as a 'consider' term on top of P. With Table 2's p0 (0.005) it is the typical
+    turn-on bias of a MEMS accelerometer (0.05), which P does not hold. Where P starts at that
+    prior (``p0_accel_bias_sigma`` 0.05, as params/estimation.yaml ships it), P learns the bias
+    in motion (the vertical constraint and the speed separate it from the tilt) but is too sure
+    of the split its model gets partly wrong, and the term is only that part (shipped 0.02).
 
     Without GNSS nothing observes the heading, so nothing observes the z gyro bias either (the
     alignment's standstill mean set it), yet the non-holonomic constraint couples it to the
@@ -152,8 +154,9 @@ class FusionConfig:
                                                  "(the paper's Q)")
     gnss_aiding_timeout_s: float = setting(5.0, "No valid fix for this long: the accelerometer bias is held [s]",
                                            low=0.0, low_open=True)
-    unaided_accel_bias_sigma: float = setting(0.05, "Accelerometer bias prior in the grade variance until GNSS "
-                                              "observes it [m/s^2]", low=0.0)
+    unaided_accel_bias_sigma: float = setting(0.05, "Accelerometer-bias error added to P in the grade variance "
+                                              "until GNSS observes the bias: the prior P lacks, or what P "
+                                              "misplaces when p0 holds the prior [m/s^2]", low=0.0)
     hold_yaw_rate_bias_without_gnss: bool = setting(True, "Hold the z gyro bias while no GNSS fix aids (a "
                                                     "consider state)")
 
