@@ -542,6 +542,24 @@ def test_without_gnss_the_filter_navigates_with_a_free_heading():
     assert abs(err_z) < 2.0 * math.sqrt(ekf.gyro_bias_covariance[2, 2]) and abs(err_z) < 5e-4, err_z
 
 
+def _grade_without_gnss(sim, ekf, *others):
+    """Run ``ekf`` (and ``others`` beside it) on the IMU and the speed of ``sim``, no GNSS; the
+    grade errors and published sigmas of ``ekf`` once it navigates, after 30 s."""
+    errors, sigmas = [], []
+    js = 0
+    for i, t in enumerate(sim["t"]):
+        for each in (ekf, *others):
+            each.process_imu(t, sim["imu_f"][i], sim["imu_w"][i])
+        while js < len(sim["speed_t"]) and sim["speed_t"][js] <= t:
+            for each in (ekf, *others):
+                each.update_speed(sim["speed_t"][js], sim["speed"][js])
+            js += 1
+        if ekf.navigating and t > 30.0:
+            errors.append(ekf.road_grade - sim["grade"][i])
+            sigmas.append(math.sqrt(ekf.road_grade_variance))
+    return np.array(errors), np.array(sigmas)
+
+
 def test_without_gnss_the_accelerometer_bias_is_held_and_its_prior_is_in_the_grade():
     """Without GNSS the along-track bias and the grade are one unobservable sum: the bias must
     not random-walk (on FASTSim's 600 s hilly drive the paper's walk took it to +2 m/s^2 and the
@@ -549,18 +567,7 @@ def test_without_gnss_the_accelerometer_bias_is_held_and_its_prior_is_in_the_gra
     sim = simulate(seed=3)
     cfg = FusionConfig()
     held, walking = FusionEKF(cfg), FusionEKF(FusionConfig(accel_bias_walk_without_gnss=True))
-    errors, sigmas = [], []
-    js = 0
-    for i, t in enumerate(sim["t"]):
-        for ekf in (held, walking):
-            ekf.process_imu(t, sim["imu_f"][i], sim["imu_w"][i])
-        while js < len(sim["speed_t"]) and sim["speed_t"][js] <= t:
-            for ekf in (held, walking):
-                ekf.update_speed(sim["speed_t"][js], sim["speed"][js])
-            js += 1
-        if held.navigating and t > 30.0:
-            errors.append(held.road_grade - sim["grade"][i])
-            sigmas.append(math.sqrt(held.road_grade_variance))
+    errors, sigmas = _grade_without_gnss(sim, held, walking)
     assert not held.accel_bias_observed and not held.gnss_aided
     p_held = held.covariance[9:12, 9:12]
     assert np.all(np.diag(p_held) <= cfg.p0_accel_bias_sigma ** 2 * (1.0 + 1e-9))   # no walk
@@ -568,7 +575,6 @@ def test_without_gnss_the_accelerometer_bias_is_held_and_its_prior_is_in_the_gra
     # the published bias covariance and the grade variance carry the unaided prior
     assert held.accel_bias_covariance[0, 0] >= cfg.unaided_accel_bias_sigma ** 2
     assert min(sigmas) >= cfg.unaided_accel_bias_sigma / G * 0.99
-    errors, sigmas = np.array(errors), np.array(sigmas)
     assert math.degrees(_rms(errors)) < 0.3
     assert np.mean(np.abs(errors) < 2.0 * sigmas) > 0.95
 
@@ -580,24 +586,13 @@ def test_without_gnss_the_shipped_bias_prior_is_counted_once():
     and not the prior counted twice (with the whole 0.05 m/s^2 added again the grade sigma was
     0.30 deg for a 0.05 deg error on this drive, NEES 0.02; now 0.13 deg, NEES 0.09)."""
     import yaml
+    from vehicle_estimation.contract.vehicle import merge_ros_parameters
     from vehicle_estimation.paths import params_file
-    shipped = yaml.safe_load(params_file("estimation").read_text())["fusion"]["ros__parameters"]
-    cfg = FusionConfig(p0_accel_bias_sigma=shipped["fusion.p0_accel_bias_sigma"],
-                       unaided_accel_bias_sigma=shipped["fusion.unaided_accel_bias_sigma"])
-    sim = simulate(seed=3)
-    ekf = FusionEKF(cfg)
-    errors, sigmas = [], []
-    js = 0
-    for i, t in enumerate(sim["t"]):
-        ekf.process_imu(t, sim["imu_f"][i], sim["imu_w"][i])
-        while js < len(sim["speed_t"]) and sim["speed_t"][js] <= t:
-            ekf.update_speed(sim["speed_t"][js], sim["speed"][js])
-            js += 1
-        if ekf.navigating and t > 30.0:
-            errors.append(ekf.road_grade - sim["grade"][i])
-            sigmas.append(math.sqrt(ekf.road_grade_variance))
+    shipped = merge_ros_parameters(yaml.safe_load(params_file("estimation").read_text()), node="fusion")
+    ekf = FusionEKF(FusionConfig(p0_accel_bias_sigma=shipped["fusion.p0_accel_bias_sigma"],
+                                 unaided_accel_bias_sigma=shipped["fusion.unaided_accel_bias_sigma"]))
+    errors, sigmas = _grade_without_gnss(simulate(seed=3), ekf)
     assert not ekf.accel_bias_observed
-    errors, sigmas = np.array(errors), np.array(sigmas)
     assert np.mean(np.abs(errors) < 2.0 * sigmas) > 0.9        # not too small
     assert np.mean((errors / sigmas) ** 2) > 0.05               # nor the prior twice (0.02)
 
