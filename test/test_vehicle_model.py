@@ -160,3 +160,48 @@ def test_tyre_load_exponent_scales_stiffness_with_load():
     assert fy1[0] + fy1[1] > fy0[0] + fy0[1]
     with pytest.raises(ValueError, match="tyre_load_exponent"):
         dataclasses.replace(SEDAN, tyre_load_exponent=-0.5).validate()
+
+
+def test_fallback_drive_force_leaves_less_lateral_force_on_the_driven_wheels():
+    """Without slip or torques the fallback puts ``drive_force`` on the driven wheels, and the
+    lateral force has the friction it leaves (the friction ellipse): nothing changes in the
+    tyre's linear range, and near the limit a driven wheel has less lateral force."""
+    driven = [i for i in range(4) if i not in SEDAN.undriven_wheels]
+    undriven = list(SEDAN.undriven_wheels)
+    x = np.array([25.0, -0.5, 0.27, 1.5, 7.0])                  # near the limit: ay 7 m/s^2, mu 0.9
+    free = tyre_forces(x, VehicleInputs(0.04, [np.nan] * 4), SEDAN)
+    driving = tyre_forces(x, VehicleInputs(0.04, [np.nan] * 4, drive_force=3000.0), SEDAN)
+    assert np.all(free.fx == 0.0)
+    assert driving.fx[driven] == pytest.approx([1500.0, 1500.0]) and np.all(driving.fx[undriven] == 0.0)
+    assert np.array_equal(driving.fy[undriven], free.fy[undriven])
+    kept = np.abs(driving.fy[driven]) / np.abs(free.fy[driven])
+    assert np.all(kept < 1.0) and kept.min() < 0.8            # the unloaded inner wheel most
+    mu_fz = SEDAN.road_friction * driving.fz
+    assert np.all(np.hypot(driving.fx, driving.fy) <= mu_fz * (1.0 + 1e-12))
+    # with torques the drive force is not used; braking torques share the friction too
+    braking = tyre_forces(x, VehicleInputs(0.04, [np.nan] * 4, brake_torques=[400.0] * 4,
+                                           drive_force=3000.0), SEDAN)
+    assert np.allclose(braking.fx, -400.0 / SEDAN.wheel_radius)
+    assert np.all(np.abs(braking.fy) < np.abs(free.fy))
+    # the tyre's linear range: the same lateral forces
+    gentle = np.array([25.0, -0.02, 0.05, 2.0, 1.0])
+    a = tyre_forces(gentle, VehicleInputs(0.01, [np.nan] * 4), SEDAN)
+    b = tyre_forces(gentle, VehicleInputs(0.01, [np.nan] * 4, drive_force=3000.0), SEDAN)
+    assert np.allclose(a.fy, b.fy, rtol=1e-12)
+
+
+def test_state_cores_take_the_drive_force_from_their_acceleration_estimate():
+    """The CKF/VB-ACKF hand the model the drive force of their own ax, only in the fallback."""
+    from vehicle_estimation.estimators.state.ckf import VehicleStateCKF, VehicleStateConfig
+    core = VehicleStateCKF(SEDAN, VehicleStateConfig(wheel_slip_forces=False))
+    u = VehicleInputs(0.0, [np.nan] * 4, 0.02)
+    core.step(0.0, u, np.array([1.0, 0.0, 0.0]))
+    core._filter._x[:] = [20.0, 0.0, 0.0, 1.0, 0.0]
+    drag = 0.5 * SEDAN.drag_coefficient * SEDAN.frontal_area * SEDAN.air_density * 400.0
+    force = core._with_drive_force(u).drive_force
+    assert force == pytest.approx(SEDAN.mass * (1.0 + SEDAN.gravity * math.sin(0.02)) + drag)
+    core._filter._x[3] = -3.0                                    # braking: no drive force
+    assert core._with_drive_force(u).drive_force is None
+    torques = VehicleInputs(0.0, [np.nan] * 4, 0.02, drive_torque=100.0)
+    core._filter._x[3] = 1.0
+    assert core._with_drive_force(torques).drive_force is None

@@ -217,6 +217,7 @@ class VehicleStateCKF(VehicleStateCore):
             return False
         t, z, dt = sample
         cfg = self.config
+        inputs = self._with_drive_force(inputs)
         z_finite = math.isfinite(z[0]) and math.isfinite(z[1]) and math.isfinite(z[2])
         with np.errstate(all="ignore"):   # absurd inputs end as a numerical failure, handled below
             if not self.initialised:
@@ -248,6 +249,23 @@ class VehicleStateCKF(VehicleStateCore):
                 except np.linalg.LinAlgError:
                     self._filter._x[:] = np.nan   # handled as a numerical failure below
         return self._after_update(inputs)
+
+    def _with_drive_force(self, inputs: VehicleInputs) -> VehicleInputs:
+        """``inputs`` with the drive force that carries the filter's acceleration estimate
+        and the drag, ``m (ax + g sin theta) + F_drag`` where positive, for the model's
+        fallback (no slip forces, no torques; module docstring of ``vehicle_model``). It is
+        taken from the estimate, as an input like a torque, not from each cubature point: the
+        points' spread of a vibrating ax, clipped at zero, would add a bias."""
+        if (inputs.torques_valid or (self.config.wheel_slip_forces and inputs.wheel_speeds_valid)
+                or not self.initialised):
+            return inputs
+        p = self.params
+        vx, ax = float(self._filter._x[0]), float(self._filter._x[3])
+        drag = 0.5 * p.drag_coefficient * p.frontal_area * p.air_density * vx * abs(vx)
+        force = inputs.mass_or(p) * (ax + p.gravity * math.sin(inputs.slope)) + drag
+        if not (math.isfinite(force) and force > 0.0):
+            return inputs
+        return dataclasses.replace(inputs, drive_force=force)
 
     def _fused_step(self, dt: float, inputs: VehicleInputs, Q: np.ndarray, z: np.ndarray) -> bool:
         """Predict and update (a finite ``z``) by one compiled call where the filter has one (the

@@ -61,12 +61,16 @@ def _accelerations(vx, vy, r, ax, ay, delta, cd, sd, sin_t, cos_t, mass, omega, 
             load = (fz / G[_FZ_NOMINAL, i]) ** n_exp
             c_sigma = c_sigma * load
             c_alpha = c_alpha * load
+        mu_fz = S[_FRICTION] * fz
         if from_slip:
             avt = abs(vt)
             slip = (omega[i] * S[_RADIUS] - vt) / (avt if (avt > min_speed or avt != avt) else min_speed)
-        else:
+            mu_lateral = mu_fz
+        else:   # quasi-static fallback (torques or the drive force), clipped to the friction limit
             slip = 0.0
-        mu_fz = S[_FRICTION] * fz
+            fx = wheel_torque[i] / S[_RADIUS]
+            fx = min(max(fx, -mu_fz), mu_fz)
+            mu_lateral = math.sqrt(max(mu_fz * mu_fz - fx * fx, 0.0))   # the friction ellipse
         one_p = 1.0 + slip
         if not one_p > 1e-6:
             one_p = 1e-6 if one_p == one_p else one_p
@@ -75,16 +79,11 @@ def _accelerations(vx, vy, r, ax, ay, delta, cd, sd, sin_t, cos_t, mass, omega, 
         d = math.sqrt(kx * kx + ky * ky)
         if not d > 1e-9:
             d = 1e-9 if d == d else d
-        lam = mu_fz * one_p / (2.0 * d)
-        scale = (2.0 - lam) * mu_fz / (2.0 * d) if lam < 1.0 else 1.0 / one_p
+        lam = mu_lateral * one_p / (2.0 * d)
+        scale = (2.0 - lam) * mu_lateral / (2.0 * d) if lam < 1.0 else 1.0 / one_p
         fy = ky * scale
         if from_slip:
             fx = kx * scale
-        elif torque_known:   # quasi-static fallback, clipped to the friction limit
-            fx = wheel_torque[i] / S[_RADIUS]
-            fx = min(max(fx, -mu_fz), mu_fz)
-        else:
-            fx = 0.0
         sum_x += fx * mx[i, 0] + fy * my[i, 0]
         sum_y += fx * mx[i, 1] + fy * my[i, 1]
         sum_z += fx * mx[i, 2] + fy * my[i, 2]
@@ -314,7 +313,6 @@ class CompiledModel:
         self.min_speed = float(min_speed)
         self.max_substep = float(max_substep)
         self.slip_forces = bool(slip_forces)
-        self._no_torque = np.zeros(4)
 
     def predict(self, x: np.ndarray, P: np.ndarray, Q: np.ndarray, dt: float,
                 inputs: vm.VehicleInputs) -> Optional[tuple[np.ndarray, np.ndarray]]:
@@ -333,7 +331,7 @@ class CompiledModel:
         inputs and this parameter set's constants."""
         params = self.params
         torque_known = inputs.torques_valid
-        wheel_torque = vm.wheel_torques(inputs, params) if torque_known else self._no_torque
+        wheel_torque = vm.wheel_torques(inputs, params)
         theta = float(inputs.slope)
         n_sub = max(1, int(math.ceil(dt / self.max_substep - 1e-9)))
         return (float(dt), n_sub, float(inputs.steer_angle), math.sin(theta), math.cos(theta),

@@ -25,11 +25,20 @@ Eqs. 8-9 cannot be formed. Then
 
 * if ``drive_torque``/``brake_torques`` are given, quasi-static tyre forces
   ``Fx_i = (T_drive,i - T_brake,i) / R`` are used (wheel inertia neglected, clipped to
-  ``mu Fz``), with the lateral Dugoff forces at zero slip;
-* otherwise ``Fx_i = 0`` for the lateral/yaw equations and ``ax`` is a random walk
-  (``ax_{k+1} = ax_k``): ``vx`` is propagated with the filter's ``ax``, which the
-  accelerometer measurement keeps close to the measured value (``vx`` is then only
-  dead-reckoned and drifts).
+  ``mu Fz``);
+* otherwise ``Fx_i`` is ``VehicleInputs.drive_force`` (the state cores set it from their
+  acceleration estimate, ``m (ax + g sin theta) + F_drag`` where positive; a braking force is
+  left out, as its share per axle is not known) in equal parts on the wheels of
+  ``driven_axle``, or 0, and ``ax`` is a random walk (``ax_{k+1} = ax_k``):
+  ``vx`` is propagated with the filter's ``ax``, which the accelerometer measurement keeps
+  close to the measured value (``vx`` is then only dead-reckoned and drifts).
+
+  In both, the lateral Dugoff force is taken at zero slip with the friction the longitudinal
+  force leaves, ``sqrt((mu Fz)^2 - Fx^2)`` (the friction ellipse; Eq. 9 couples the two
+  directions through the measured slip, which is missing here). It changes nothing in the
+  tyre's linear range; near the limit a wheel that drives has less lateral force left (without
+  it a car leaving a limit corner under power kept the full lateral grip on its driven wheels,
+  and on the real Stanford drive the filters read half the true sideslip there).
 
 Deviations from the printed equations (documented, small):
 
@@ -112,6 +121,9 @@ class VehicleInputs:
             equally over the wheels of ``VehicleParams.driven_axle``. Fallback only.
         brake_torques: optional ``(4,)`` brake torques per wheel [N m], >= 0 retarding.
             Fallback only.
+        drive_force: optional drive force at the driven wheels' contact patches [N], split
+            equally over the wheels of ``VehicleParams.driven_axle``; used only where no
+            torques are given. Fallback only (module docstring).
     """
 
     steer_angle: float = 0.0
@@ -121,6 +133,7 @@ class VehicleInputs:
     mass: Optional[float] = None
     drive_torque: Optional[float] = None
     brake_torques: Optional[np.ndarray] = None
+    drive_force: Optional[float] = None
 
     def __post_init__(self) -> None:
         ws = np.asarray(self.wheel_speeds, dtype=float).reshape(-1)
@@ -189,6 +202,7 @@ class _WheelGeometry(NamedTuple):
     fz_nominal: np.ndarray    # static F_z per wheel at the nominal mass, level road [N]
     load_ax: np.ndarray       # F_z per wheel per (m a_x)
     load_ay: np.ndarray       # F_z per wheel per (m a_y)
+    drive_share: np.ndarray   # share of the drive force per wheel (driven_axle)
 
 
 _GEOMETRY: dict[int, tuple[VehicleParams, _WheelGeometry]] = {}
@@ -223,7 +237,12 @@ def _make_geometry(params: VehicleParams) -> _WheelGeometry:
         fz_nominal=np.array([front, front, rear, rear]) * params.mass * params.gravity,
         load_ax=np.array([-h / (2.0 * L), -h / (2.0 * L), h / (2.0 * L), h / (2.0 * L)]),
         load_ay=np.array([-dfront, dfront, -drear, drear]),
+        drive_share=_DRIVE_MASKS[params.driven_axle] / _DRIVE_MASKS[params.driven_axle].sum(),
     )
+
+
+_DRIVE_MASKS = {"front": np.array([1.0, 1.0, 0.0, 0.0]), "rear": np.array([0.0, 0.0, 1.0, 1.0]),
+                "all": np.ones(4)}
 
 
 def _wheel_velocities(vx, vy, r, delta, params: VehicleParams, min_speed: float):
@@ -274,11 +293,12 @@ def _vertical_loads(ax_spec, ay, slope, mass, params: VehicleParams):
     return np.maximum(fz, 0.0)
 
 
-def _dugoff(slip, alpha, fz, params: VehicleParams):
+def _dugoff(slip, alpha, fz, params: VehicleParams, mu_fz=None):
     """Eq. 9, Dugoff tyre, arrays (..., 4). Returns (Fx, Fy) in the wheel frame.
 
     With ``params.tyre_load_exponent`` ``n > 0`` the stiffnesses are ``C (F_z / F_z0)^n``
-    (module docstring); ``n = 0`` is Eq. 9 as printed.
+    (module docstring); ``n = 0`` is Eq. 9 as printed. ``mu_fz``: the friction force the tyre
+    has (default ``road_friction F_z``).
     """
     geometry = _geometry(params)
     c_sigma = params.longitudinal_stiffness
@@ -288,7 +308,8 @@ def _dugoff(slip, alpha, fz, params: VehicleParams):
         load = (np.asarray(fz, dtype=float) / geometry.fz_nominal) ** n
         c_sigma = c_sigma * load
         c_alpha = c_alpha * load
-    mu_fz = params.road_friction * fz
+    if mu_fz is None:
+        mu_fz = params.road_friction * fz
     one_p = np.maximum(1.0 + slip, 1e-6)
     kx = c_sigma * slip
     ky = c_alpha * np.tan(alpha)
@@ -300,7 +321,8 @@ def _dugoff(slip, alpha, fz, params: VehicleParams):
 
 
 def _fallback_fx(inputs: VehicleInputs, fz, params: VehicleParams):
-    """Quasi-static longitudinal forces from torques (wheel inertia neglected)."""
+    """Quasi-static longitudinal forces from torques or the drive force (wheel inertia
+    neglected), clipped to the friction limit."""
     fx = wheel_torques(inputs, params) / params.wheel_radius
     lim = params.road_friction * fz
     return np.clip(fx, -lim, lim)
@@ -308,13 +330,16 @@ def _fallback_fx(inputs: VehicleInputs, fz, params: VehicleParams):
 
 def wheel_torques(inputs: VehicleInputs, params: VehicleParams) -> np.ndarray:
     """Net torque per wheel [N m]: the drive torque split over the driven wheels, less the
-    brake torques (the fallback's longitudinal force before its friction limit)."""
+    brake torques (the fallback's longitudinal force before its friction limit); without
+    torques, the drive force's (``VehicleInputs.drive_force``) torque."""
     t = np.zeros(4)
+    if not inputs.torques_valid:
+        force = inputs.drive_force
+        if force is not None and math.isfinite(force) and force > 0.0:
+            t = force * params.wheel_radius * _geometry(params).drive_share
+        return t
     if inputs.drive_torque is not None:
-        axle = params.driven_axle
-        mask = np.asarray({"front": (1, 1, 0, 0), "rear": (0, 0, 1, 1), "all": (1, 1, 1, 1)}[axle],
-                          dtype=float)
-        t = t + inputs.drive_torque * mask / mask.sum()
+        t = t + inputs.drive_torque * _geometry(params).drive_share
     if inputs.brake_torques is not None:
         t = t - inputs.brake_torques
     return t
@@ -342,8 +367,10 @@ def tyre_forces(state, inputs: VehicleInputs, params: VehicleParams, *,
         from_slip = True
     else:
         slip = np.zeros_like(vt)
-        _, fy = _dugoff(slip, alpha, fz, params)
-        fx = _fallback_fx(inputs, fz, params) if inputs.torques_valid else np.zeros_like(fy)
+        fx = _fallback_fx(inputs, fz, params)
+        # the friction ellipse: the lateral force has what the longitudinal one leaves
+        mu_fz = params.road_friction * fz
+        _, fy = _dugoff(slip, alpha, fz, params, np.sqrt(np.maximum(mu_fz * mu_fz - fx * fx, 0.0)))
         fx = np.broadcast_to(fx, fy.shape)
         from_slip = False
     return TyreForces(fx, fy, fz, slip, alpha, vt, from_slip)
