@@ -261,7 +261,7 @@ class VehicleStateCKF(VehicleStateCore):
             return inputs
         p = self.params
         vx, ax = float(self._filter._x[0]), float(self._filter._x[3])
-        drag = 0.5 * p.drag_coefficient * p.frontal_area * p.air_density * vx * abs(vx)
+        drag = float(vm.aerodynamic_drag(vx, p))
         force = inputs.mass_or(p) * (ax + p.gravity * math.sin(inputs.slope)) + drag
         if not (math.isfinite(force) and force > 0.0):
             return inputs

@@ -89,6 +89,7 @@ __all__ = [
     "sideslip",
     "free_rolling_wheel_speeds",
     "wheel_forward_speeds",
+    "aerodynamic_drag",
     "STATE_NAMES",
     "MEASUREMENT_NAMES",
     "DEFAULT_MIN_SPEED",
@@ -376,6 +377,11 @@ def tyre_forces(state, inputs: VehicleInputs, params: VehicleParams, *,
     return TyreForces(fx, fy, fz, slip, alpha, vt, from_slip)
 
 
+def aerodynamic_drag(vx, params: VehicleParams):
+    """The drag of Eq. 2, ``0.5 rho C_d A vx |vx|`` [N] (sign-correct when reversing)."""
+    return 0.5 * params.drag_coefficient * params.frontal_area * params.air_density * vx * np.abs(vx)
+
+
 def _force_to_body(delta: float, params: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
     """(4, 3) matrices ``Mx``, ``My`` with ``[sum Fx_body, sum Fy_body, M_z] = Fx @ Mx + Fy @ My``
     (the tyre forces in their wheel frames, front wheels steered by ``delta``): Eqs. 2-4 as
@@ -411,7 +417,7 @@ def _body_accelerations(x, inputs: VehicleInputs, params: VehicleParams, min_spe
     mx, my = _force_to_body(float(inputs.steer_angle), params)
     sums = tf.fx @ mx + tf.fy @ my
     vx = np.asarray(x, dtype=float)[..., 0]
-    drag = 0.5 * params.drag_coefficient * params.frontal_area * params.air_density * vx * np.abs(vx)
+    drag = aerodynamic_drag(vx, params)
     ax = (sums[..., 0] - drag) / mass - params.gravity * math.sin(inputs.slope)   # Eq. 2
     ay = sums[..., 1] / mass                                                        # Eq. 3
     ax_known = tf.longitudinal_from_slip or inputs.torques_valid
