@@ -214,16 +214,13 @@ def test_real_limit_corner_exit_under_power_reads_the_sideslip(tmp_path):
     read as a speed, so only the drive force that carries the filter's ax tells the model that
     the driven wheels have less lateral grip left (vehicle_model: the friction ellipse).
     Without it the CKF read half the true sideslip there: 0.86 deg RMS, now 0.42 deg."""
-    from vehicle_estimation.io import import_map, importer
     from vehicle_estimation.paths import params_file, shared_data_dir
     from vehicle_estimation.validation import lateral, stanford
-    data = shared_data_dir(stanford.MAPPING)
-    if not (data / "t.txt").is_file():
+    if not (shared_data_dir(stanford.MAPPING) / "t.txt").is_file():
         pytest.skip("Stanford data not available")
     pytest.importorskip("rosbags")
-    mapping, _ = import_map.load_mapping(stanford.MAPPING)
     bag = tmp_path / "stanford"
-    importer.import_logs({**mapping, **stanford.SPEED_MODES["ref"][1]}, bag, base_dir=str(data), max_rows=21500)
+    stanford.import_bag(bag, "ref", rows=21500)
     drive = lateral.read_drive(bag)
     est = lateral.run_core("ckf", drive, load_vehicle_params(params_file(stanford.VEHICLE)), use_wheels=True,
                            roll="none")

@@ -17,7 +17,8 @@ contract and ground truth), and runs, without ROS:
   ground-truth attitude standing in for the fusion's (``--roll truth``, default; ``--roll none``
   feeds the raw ay, which on the CommonRoad car reads 15 % above the true ay in a corner:
   4.3 deg of roll at 4.7 m/s^2), slope unknown (slope 0 plus the
-  ``missing_slope_std_deg`` = 2 deg vx process noise) and the nominal mass; the last joint state
+  ``missing_slope_std_deg`` = 2 deg vx process noise; while neither wheel speeds nor a fresh
+  ``vehicle/speed`` measure vx, the ``dead_reckoning_accel_std`` noise too) and the nominal mass; the last joint state
   and speed *before* the IMU sample (in the bag a joint state with the same stamp is written
   after the IMU message); a 1 s wait for wheel speeds before starting from ``initial_vx``; IMU
   [ax, ay, r] averaged over the samples since the last 100 Hz step. Each filter runs twice:
@@ -60,6 +61,7 @@ WHEEL_WAIT_S = 1.0                # state node
 GRADE_CORRELATION_S = 5.0         # state node
 MISSING_SLOPE_STD_DEG = 2.0       # state node missing_slope_std_deg
 SPEED_FALLBACK_STD = 0.3          # state node speed_fallback_std
+DEAD_RECKONING_ACCEL_STD = 0.35   # state node dead_reckoning_accel_std
 FILTERS = ("ckf", "vbackf", "aoukf")
 ROLL_SOURCES = ("truth", "none")
 DEFAULT_ROLL = "truth"
@@ -129,10 +131,12 @@ def shipped_state_settings() -> StateSettings:
     return StateSettings.from_parameters(shipped_state_parameters())
 
 
-def make_core(name: str, vehicle: VehicleParams):
-    """A core with the state node's shipped tuning (see the module docstring)."""
-    return build_state_filter(name, vehicle, settings=shipped_state_settings(),
-                              parameters=shipped_state_parameters())
+def make_core(name: str, vehicle: VehicleParams, overrides: dict | None = None):
+    """A core with the state node's shipped tuning (see the module docstring), with the node
+    parameters ``overrides`` (as a params layer would set them) on top."""
+    parameters = {**shipped_state_parameters(), **(overrides or {})}
+    return build_state_filter(name, vehicle, settings=StateSettings.from_parameters(parameters),
+                              parameters=parameters)
 
 
 def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:
@@ -152,18 +156,24 @@ def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:
 
 
 def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool,
-             roll: str = DEFAULT_ROLL, roll_lever: float | None = None) -> dict[str, np.ndarray]:
+             roll: str = DEFAULT_ROLL, roll_lever: float | None = None,
+             overrides: dict | None = None) -> dict[str, np.ndarray]:
     """Step one core through a drive as the state node would; (t, vx, vy, r, beta) per step.
+
+    ``overrides``: state-node parameters over the shipped ones (:func:`make_core`).
 
     ``roll``: the state node's ``roll_compensation`` (on by default there, with the fusion's
     attitude): ``truth`` takes ``g sin(roll) cos(pitch)`` of the ground-truth attitude out of
     the measured ay (the fusion at its best), ``none`` feeds the raw ay."""
-    core = make_core(name, vehicle)
+    core = make_core(name, vehicle, overrides) if overrides else make_core(name, vehicle)
     imu, js, sp = drive["imu"], drive["joints"], drive["speed"]
     g_y = vehicle.gravity * lateral_gravity(drive, imu["t"], roll)
-    missing_slope_noise = 2.0 * (vehicle.gravity * math.sin(math.radians(MISSING_SLOPE_STD_DEG))) ** 2 \
+    node = {**shipped_state_parameters(), **(overrides or {})}
+    missing_slope_std = math.radians(float(node.get("missing_slope_std_deg", MISSING_SLOPE_STD_DEG)))
+    missing_slope_noise = 2.0 * (vehicle.gravity * math.sin(missing_slope_std)) ** 2 * GRADE_CORRELATION_S
+    dead_reckoning_noise = 2.0 * float(node.get("dead_reckoning_accel_std", DEAD_RECKONING_ACCEL_STD)) ** 2 \
         * GRADE_CORRELATION_S
-    core.extra_vx_noise_density = missing_slope_noise
+    vx_measured = False
     ji = si = 0
     n_js, n_sp = js["t"].size, sp["t"].size
     chassis = None
@@ -208,10 +218,15 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
         z_sum[:] = 0.0
         z_count = 0
         last_step = t
+        # as the node: while nothing measures vx, the dead reckoning's drift is process noise
+        core.extra_vx_noise_density = missing_slope_noise + (
+            0.0 if vx_measured or not core.initialised else dead_reckoning_noise)
         core.step(t, inputs, z)
-        if (not np.all(np.isfinite(wheels[2:])) and speed is not None and t - speed[0] <= STALE_INPUT_S
-                and core.update_speed(speed[1], speed[2])):
+        rear_wheels_measured = bool(np.all(np.isfinite(wheels[2:])))
+        speed_fresh = speed is not None and t - speed[0] <= STALE_INPUT_S
+        if not rear_wheels_measured and speed_fresh and core.update_speed(speed[1], speed[2]):
             speed = None
+        vx_measured = rear_wheels_measured or speed_fresh
         x = np.asarray(core.x, dtype=float)
         out.append((t, x[0], x[1], x[2], float(core.sideslip), float(core.P[1, 1])))
     a = np.array(out)

@@ -77,6 +77,18 @@ SPEED_MODES: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+def import_bag(bag: Path, speed: str, data_dir: str | None = None, rows: int | None = None):
+    """The drive as a bag with the speed source ``speed`` (:data:`SPEED_MODES`), from
+    ``data_dir`` (default: the shared data); its first ``rows`` samples, or all. Returns the
+    importer's result (counts and signals)."""
+    from vehicle_estimation.io import import_map, importer
+    from vehicle_estimation.paths import shared_data_dir
+
+    mapping, _ = import_map.load_mapping(MAPPING)
+    return importer.import_logs({**mapping, **SPEED_MODES[speed][1]}, bag,
+                                base_dir=data_dir or str(shared_data_dir(MAPPING)), max_rows=rows)
+
+
 def _add_vibration(bags: dict[str, Path], t: np.ndarray, ax: np.ndarray, ay: np.ndarray, std: float,
                    seed: int, progress: bool) -> tuple[np.ndarray, np.ndarray]:
     """The same seeded vibration on x, y, z of every bag's IMU and on the baseline's ax, ay."""
@@ -255,7 +267,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     :func:`main`); ``params_files`` are the layers after the vehicle file.
     """
     from vehicle_estimation.paths import params_file, shared_data_dir
-    from vehicle_estimation.io import import_map, importer
+    from vehicle_estimation.io import import_map
     from vehicle_estimation.launcher.replay import ReplayError, print_stats, replay
     from vehicle_estimation.contract.vehicle import load_vehicle_params
 
@@ -276,17 +288,16 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
             shutil.rmtree(out / sub)
     out.mkdir(parents=True, exist_ok=True)
     vehicle = load_vehicle_params(params_file(VEHICLE))
-    base_map, map_path = import_map.load_mapping(MAPPING)
+    _, map_path = import_map.load_mapping(MAPPING)
     data_dir = data_dir or str(shared_data_dir(MAPPING))
 
     # ---- import (one bag per speed source) and the arrays the baseline needs
     bags: dict[str, Path] = {}
     signals = None
     for speed in speeds:
-        mapping = {**base_map, **SPEED_MODES[speed][1]}
         bag = out / "bags" / f"input_{speed}"
         bag.parent.mkdir(parents=True, exist_ok=True)
-        res = importer.import_logs(mapping, bag, base_dir=data_dir, max_rows=rows)
+        res = import_bag(bag, speed, data_dir, rows)
         if progress:
             print(f"[import] {bag}: " + ", ".join(f"{k} {v}" for k, v in sorted(res.counts.items())))
         bags[speed] = bag
