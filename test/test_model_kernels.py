@@ -302,6 +302,13 @@ def test_vb_diagonal_noise_compiled_gives_the_numpy_estimates():
     np.testing.assert_allclose(np.diag(R), np.diag(full), rtol=1e-12)
     _, c = _state_drive(VehicleStateVBACKF, SEDAN, VehicleStateConfig(), True)
     assert float(np.max(np.abs(c - b) / scale)) > 1e-6      # it is another filter
+    # each channel with its own memory (params/estimation.yaml): the same in both paths too
+    per_channel = VBConfig(noise_structure="diagonal", rho_per_channel=(0.9995, 0.9995, 0.981684))
+    numpy_core, a = _state_drive(lambda p, c: VehicleStateVBACKF(p, c, per_channel), SEDAN, VehicleStateConfig(), False)
+    compiled_core, b = _state_drive(lambda p, c: VehicleStateVBACKF(p, c, per_channel), SEDAN, VehicleStateConfig(), True)
+    assert float(np.max(np.abs(a - b) / scale)) < 1e-9
+    np.testing.assert_allclose(compiled_core.filter.dofs, numpy_core.filter.dofs, rtol=1e-12)
+    assert compiled_core.filter.dofs[0] > compiled_core.filter.dofs[2]
 
 
 @pytest.mark.parametrize("core_class", [VehicleStateCKF, VehicleStateVBACKF])

@@ -186,7 +186,8 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, R_known, iterations
     """``VariationalBayesCKF.update`` for an affine ``h = H x + c`` and a fixed ``N``: the
     closed-form moments of the prediction, then ``N`` times the residual moment
     ``B = e e^T + H P H^T``, ``V = V_pred + B``, ``R = V / (nu - d - 1)`` (``r_mean``) or
-    ``V / nu`` (Eq. 11), only its diagonal where ``diagonal``, ``P_zz = C_zz + R + R_known``
+    ``V / nu`` (Eq. 11; ``nu`` per channel, ``dof_pred`` of shape ``(m,)``), only its diagonal
+    where ``diagonal``, ``P_zz = C_zz + R + R_known``
     (``R_known``: a noise the caller knows, not learnt), the gain and the correction (Eqs. 12-13).
 
     Returns ``VB_OK``; ``VB_REJECTED`` where the moments are not finite (nothing written but
@@ -197,14 +198,17 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, R_known, iterations
     if not affine_moments(z, x_pred, P_pred, H, c, innovation, Pxz, Czz):
         return VB_REJECTED
     L = np.empty((m, m))
-    if not (math.isfinite(dof_pred) and cholesky_lower(scale_pred, L)):
+    if not cholesky_lower(scale_pred, L):
         return VB_FAILED
+    divisor = np.empty(m)
     for i in range(m):
+        if not math.isfinite(dof_pred[i]):
+            return VB_FAILED
+        dof = dof_pred[i] + 1.0
+        divisor[i] = dof - m - 1.0 if r_mean else dof
         for k in range(m):
             if not math.isfinite(scale_pred[i, k]):
                 return VB_FAILED
-    dof = dof_pred + 1.0
-    divisor = dof - m - 1.0 if r_mean else dof
     x = x_pred.copy()
     P = P_pred.copy()
     e = np.empty(m)
@@ -228,7 +232,7 @@ def vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, R_known, iterations
                 scale_out[b, a] = v
         for a in range(m):
             for b in range(m):
-                Pzz_out[a, b] = (Czz[a, b] + (scale_out[a, b] / divisor if a == b or not diagonal else 0.0)
+                Pzz_out[a, b] = (Czz[a, b] + (scale_out[a, b] / divisor[b] if a == b or not diagonal else 0.0)
                                  + R_known[a, b])
         if not cholesky_lower(Pzz_out, L):
             return VB_FAILED
@@ -258,8 +262,9 @@ def vb_step(x, P, Q, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_torque, 
             scale_pred,
             innovation, Czz, Pxz, x_out, P_out, scale_out, K_out, Pzz_out):
     """One VB-ACKF step in one call: :func:`cubature_predict` into ``x_prior``, ``P_prior``; the
-    inverse-Wishart prediction ``nu = rho (nu - d - 1) + d + 1``, ``V = rho V`` (Fig. 3) into
-    ``scale_pred`` (its ``nu`` is ``rho (dof - d - 1) + d + 1``, recomputed by the caller);
+    inverse-Wishart prediction ``nu = rho (nu - d - 1) + d + 1``, ``V = rho V`` (Fig. 3; ``rho``
+    and ``nu`` per channel, ``V_ab`` times ``sqrt(rho_a rho_b)``) into ``scale_pred`` (its ``nu``
+    is recomputed by the caller);
     then :func:`vb_update`. Returns its outcome, or ``STEP_NO_FACTOR`` (``P`` has no Cholesky
     factor: nothing written) or ``STEP_PREDICTION_NOT_FINITE`` (the prediction is written, no
     update)."""
@@ -267,13 +272,16 @@ def vb_step(x, P, Q, dt, n_sub, delta, sin_t, cos_t, mass, omega, wheel_torque, 
                             torque_known, G, S, min_speed, x_prior, P_prior):
         return STEP_NO_FACTOR
     m = z.shape[0]
+    d1 = m + 1.0
+    dof_pred = np.empty(m)
     for a in range(m):
+        dof_pred[a] = rho[a] * (dof[a] - d1) + d1
         for b in range(m):
-            scale_pred[a, b] = rho * scale[a, b]
+            factor = rho[a] if rho[a] == rho[b] else math.sqrt(rho[a] * rho[b])
+            scale_pred[a, b] = factor * scale[a, b]
     if not small_linalg.all_finite(x_prior, P_prior):
         return STEP_PREDICTION_NOT_FINITE
-    d1 = m + 1.0
-    return vb_update(z, x_prior, P_prior, rho * (dof - d1) + d1, scale_pred, H, c, R_known, iterations, r_mean,
+    return vb_update(z, x_prior, P_prior, dof_pred, scale_pred, H, c, R_known, iterations, r_mean,
                      diagonal, innovation, Czz, Pxz, x_out, P_out, scale_out, K_out, Pzz_out)
 
 
@@ -363,12 +371,12 @@ def warm_up() -> None:
     x, P = np.array([10.0, 0.0, 0.0, 0.0, 0.0]), np.eye(5)
     model.predict(x, P, 0.01 * np.eye(5), 0.01, vm.VehicleInputs(wheel_speeds=np.full(4, 30.0)))
     H, c = vm.measurement_affine(vm.VehicleInputs(), model.params)
-    vb_update(np.zeros(3), x, P, 8.0, np.eye(3), H, c, np.zeros((3, 3)), 1, True, False, np.empty(3), np.empty((3, 3)),
+    vb_update(np.zeros(3), x, P, np.full(3, 8.0), np.eye(3), H, c, np.zeros((3, 3)), 1, True, False, np.empty(3), np.empty((3, 3)),
               np.empty((5, 3)), np.empty(5), np.empty((5, 5)), np.empty((3, 3)), np.empty((5, 3)), np.empty((3, 3)))
     affine_update(np.zeros(3), x, P, H, c, np.eye(3), np.empty(3), np.empty(5), np.empty((5, 5)),
                   np.empty((5, 3)), np.empty((3, 3)))
     step_arguments = (x, P, 0.01 * np.eye(5), *model.model_arguments(0.01, vm.VehicleInputs(wheel_speeds=np.full(4, 30.0))),
-                      0.9, np.zeros(3), H, c, np.zeros((3, 3)), 8.0, np.eye(3), 1, True, False, np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
+                      np.full(3, 0.9), np.zeros(3), H, c, np.zeros((3, 3)), np.full(3, 8.0), np.eye(3), 1, True, False, np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
                       np.empty(3), np.empty((3, 3)), np.empty((5, 3)), np.empty(5), np.empty((5, 5)), np.empty((3, 3)),
                       np.empty((5, 3)), np.empty((3, 3)))
     vb_step(*step_arguments)

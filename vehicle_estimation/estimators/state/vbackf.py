@@ -59,6 +59,11 @@ Choices where the paper's text is not explicit (Fig. 3 is an image not in the te
   a prediction over ``dt`` uses ``rho ** (dt / nominal_dt)`` so that the memory of the
   noise estimate is a time (``nominal_dt / (1 - rho)``, 0.55 s for the defaults) and not a
   number of samples.
+* Not in the paper: with the diagonal noise (``VBConfig.noise_structure``), each channel may
+  forget at its own rate (``VBConfig.rho_per_channel``): one ``nu`` per channel, and
+  ``V_ab`` forgotten by ``sqrt(rho_a rho_b)`` (symmetric; each variance by its own ``rho``).
+  An accelerometer's vibration noise changes over seconds to minutes, while the gyro's learnt
+  noise, on a nearly exact model, is best kept short (params/estimation.yaml says why).
 
 Limitation (inherent to the method, not to this code): ``R`` is identifiable from the
 innovations only where the predicted measurement covariance ``C_zz`` is not much larger
@@ -129,6 +134,11 @@ class VBConfig:
     tolerance: float = setting(
         0.0, "Stop the iterations early when the relative change of V is below this (0 = always "
         "`iterations`, as the paper) [-]", low=0.0)
+    rho_per_channel: tuple[float, ...] = setting(
+        (), "Forgetting factor of each measurement channel's noise, per nominal_dt, in the order of "
+        "z ([ax, ay, r] for the vehicle state); empty = rho for every channel. Different values only "
+        "with the 'diagonal' noise_structure, where each channel's variance is learnt alone [-]",
+        low=0.0, high=1.0, low_open=True, each=True)
 
     @property
     def diagonal(self) -> bool:
@@ -137,6 +147,9 @@ class VBConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first invalid field."""
         check_settings(self)
+        if len(set(self.rho_per_channel)) > 1 and not self.diagonal:
+            raise ValueError("rho_per_channel with different values needs noise_structure 'diagonal': a full "
+                             "inverse-Wishart has one number of degrees of freedom")
         if self.nominal_dt is not None and not (
                 isinstance(self.nominal_dt, (int, float)) and not isinstance(self.nominal_dt, bool)
                 and math.isfinite(self.nominal_dt) and self.nominal_dt > 0.0):
@@ -171,6 +184,12 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         if not (is_positive_definite(self.R) and np.allclose(self.R, self.R.T)):
             raise ValueError("R must be a finite, symmetric positive-definite matrix")
         self.R0 = self.R.copy()
+        if len(self.vb.rho_per_channel) not in (0, self.m):
+            raise ValueError(f"rho_per_channel must have one value per measurement channel ({self.m}), "
+                             f"got {len(self.vb.rho_per_channel)}")
+        # One forgetting factor and one nu per channel; all equal unless rho_per_channel.
+        self._rho = np.array(self.vb.rho_per_channel if len(self.vb.rho_per_channel) else [self.vb.rho] * self.m,
+                             dtype=float)
         self._no_known_noise = np.zeros((self.m, self.m))
         self.vb_fallbacks = 0
         self.rejected_measurements = 0
@@ -192,7 +211,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
             if not is_positive_definite(R0):
                 raise ValueError("R0 must be finite and positive definite")
             self.R0 = 0.5 * (R0 + R0.T)
-        self._dof = self.m + 1.0 + self.vb.prior_weight
+        self._dof = np.full(self.m, self.m + 1.0 + self.vb.prior_weight)
         self._scale = self.vb.prior_weight * self.R0
 
     def reset(self, x0, P0, *, reset_noise: bool = False) -> None:
@@ -206,8 +225,14 @@ class VariationalBayesCKF(CubatureKalmanFilter):
 
     @property
     def dof(self) -> float:
-        """Current degrees of freedom ``nu`` of ``IW(R; nu, V)``."""
-        return float(self._dof)
+        """Current degrees of freedom ``nu`` of ``IW(R; nu, V)`` (of the first channel's
+        inverse-Gamma where the channels forget at different rates: :attr:`dofs`)."""
+        return float(self._dof[0])
+
+    @property
+    def dofs(self) -> np.ndarray:
+        """``nu`` of each channel (equal unless ``VBConfig.rho_per_channel``)."""
+        return self._dof.copy()
 
     @property
     def scale(self) -> np.ndarray:
@@ -234,17 +259,27 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         """The ``R`` the gain uses, by ``VBConfig.r_estimate`` (default: Eq. 11)."""
         return self._point_estimate(self._dof, self._scale, self.vb.r_estimate)
 
-    def _point_estimate(self, dof: float, scale: np.ndarray, kind: str) -> np.ndarray:
+    def _point_estimate(self, dof: np.ndarray, scale: np.ndarray, kind: str) -> np.ndarray:
         """``R`` of ``IW(R; dof, scale)``: its mean (``kind`` "mean") or ``(E[R^-1])^-1`` ("vb");
-        only its diagonal with ``VBConfig.noise_structure`` "diagonal"."""
+        only its diagonal with ``VBConfig.noise_structure`` "diagonal" (``dof`` per channel:
+        column ``j`` is divided by channel ``j``'s; all equal for a full ``R``)."""
         R = scale / (dof - self.m - 1.0) if kind == "mean" else scale / dof
         return np.diag(np.diag(R)) if self.vb.diagonal else R
 
-    def forgetting_factor(self, dt: float) -> float:
-        """``rho`` for a prediction over ``dt``: ``rho ** (dt / nominal_dt)`` or ``rho``."""
+    def forgetting_factor(self, dt: float) -> np.ndarray:
+        """Each channel's ``rho`` for a prediction over ``dt``: ``rho ** (dt / nominal_dt)``
+        or ``rho``."""
         if self.vb.nominal_dt is None:
-            return self.vb.rho
-        return self.vb.rho ** (max(float(dt), 0.0) / self.vb.nominal_dt)
+            return self._rho.copy()
+        return self._rho ** (max(float(dt), 0.0) / self.vb.nominal_dt)
+
+    @staticmethod
+    def _forget_scale(rho: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """``V_k|k-1``: ``rho V`` (Fig. 3); per channel ``V_ab sqrt(rho_a rho_b)``, which keeps
+        ``V`` symmetric and scales each diagonal element by its channel's ``rho`` (``rho_a``
+        itself where the two are equal, as ``vb_step`` does)."""
+        row, column = rho[:, None], rho[None, :]
+        return np.where(row == column, row, np.sqrt(row * column)) * scale
 
     # -- time update ---------------------------------------------------------------------
     def predict(self, dt: float, *args, Q: Optional[np.ndarray] = None) -> None:
@@ -252,9 +287,9 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         super().predict(dt, *args, Q=Q)
         rho = self.forgetting_factor(dt)
         self._dof = self._predicted_dof(rho)
-        self._scale = rho * self._scale
+        self._scale = self._forget_scale(rho, self._scale)
 
-    def _predicted_dof(self, rho: float) -> float:
+    def _predicted_dof(self, rho: np.ndarray) -> np.ndarray:
         """``nu_k|k-1 = rho (nu_k-1 - d - 1) + d + 1`` (Fig. 3; ``vb_step`` computes the same)."""
         d1 = self.m + 1.0
         return rho * (self._dof - d1) + d1
@@ -318,7 +353,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         try:
             # V_k|k-1 PD and B PSD (by construction) make every V^(i+1), R^(i+1) PD: check the
             # prediction once, then only that B is finite and P_zz factorises.
-            if not (math.isfinite(dof_pred) and is_positive_definite(scale_pred)):
+            if not (np.isfinite(dof_pred).all() and is_positive_definite(scale_pred)):
                 raise _NumericalFailure
             if self.h_affine is not None and self.vb.tolerance == 0.0:
                 H, c = self.h_affine(*args)
@@ -354,7 +389,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         same outcomes (rejection, fallback), the same numbers to 1e-12."""
         out = self._kernel_outputs()
         x_pred, P_pred, dof_pred, scale_pred = self._x, self._P, self._dof, self._scale
-        outcome = vb_update(z, x_pred, P_pred, float(dof_pred), scale_pred, H, c, self._known(), self.vb.iterations,
+        outcome = vb_update(z, x_pred, P_pred, dof_pred, scale_pred, H, c, self._known(), self.vb.iterations,
                             self.vb.r_estimate == "mean", self.vb.diagonal, *out)
         self._take_outcome(outcome, out, x_pred, P_pred, dof_pred, scale_pred)
         return out[0]
@@ -373,7 +408,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         out = self._kernel_outputs()
         rho = self.forgetting_factor(dt)
         arguments = (self._x, self._P, Q, *model.model_arguments(dt, inputs), rho, z, *h_affine(inputs),
-                     self._known(), float(self._dof), self._scale, self.vb.iterations, self.vb.r_estimate == "mean",
+                     self._known(), self._dof, self._scale, self.vb.iterations, self.vb.r_estimate == "mean",
                      self.vb.diagonal, x_prior, P_prior, scale_pred, *out)
         outcome = vb_step(*arguments)
         if outcome == STEP_NO_FACTOR:
@@ -393,7 +428,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         return (np.empty(m), np.empty((m, m)), np.empty((n, m)), np.empty(n), np.empty((n, n)), np.empty((m, m)),
                 np.empty((n, m)), np.empty((m, m)))
 
-    def _take_outcome(self, outcome: int, out: tuple, x_pred, P_pred, dof_pred: float, scale_pred) -> None:
+    def _take_outcome(self, outcome: int, out: tuple, x_pred, P_pred, dof_pred: np.ndarray, scale_pred) -> None:
         """The state after a compiled update from the prediction ``(x, P, nu, V)_pred``."""
         innovation, Czz, Pxz, x, P, scale, K, Pzz = out
         if outcome == VB_REJECTED:
@@ -432,7 +467,7 @@ class VariationalBayesCKF(CubatureKalmanFilter):
         self.vb_fallbacks += 1
         self.last_iterations = 0
         self._dof, self._scale = dof_pred, scale_pred
-        if not (math.isfinite(dof_pred) and is_positive_definite(scale_pred)):
+        if not (np.isfinite(dof_pred).all() and is_positive_definite(scale_pred)):
             self.reset_noise_statistics()
         self._x, self._P = x_pred, P_pred
         R = self._noise(self.R_estimate, None)
