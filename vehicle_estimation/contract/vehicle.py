@@ -63,6 +63,8 @@ def dataclass_from_mapping(cls: Any, values: Mapping[str, Any], unknown: str) ->
 DRIVEN_AXLES = ("front", "rear", "all")
 #: Wheel indices, in the contract's order fl, fr, rl, rr, of the undriven axle.
 UNDRIVEN_WHEELS = {"front": (2, 3), "rear": (0, 1), "all": (0, 1, 2, 3)}
+#: Wheel indices (same order) that the drive torque reaches.
+DRIVEN_WHEELS = {"front": (0, 1), "rear": (2, 3), "all": (0, 1, 2, 3)}
 
 
 @dataclasses.dataclass(frozen=True)

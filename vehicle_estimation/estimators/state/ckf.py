@@ -256,8 +256,7 @@ class VehicleStateCKF(VehicleStateCore):
         fallback (no slip forces, no torques; module docstring of ``vehicle_model``). It is
         taken from the estimate, as an input like a torque, not from each cubature point: the
         points' spread of a vibrating ax, clipped at zero, would add a bias."""
-        if (inputs.torques_valid or (self.config.wheel_slip_forces and inputs.wheel_speeds_valid)
-                or not self.initialised):
+        if vm.longitudinal_forces_known(inputs, self.config.wheel_slip_forces) or not self.initialised:
             return inputs
         p = self.params
         vx, ax = float(self._filter._x[0]), float(self._filter._x[3])

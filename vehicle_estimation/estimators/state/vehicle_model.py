@@ -77,7 +77,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from vehicle_estimation.contract.vehicle import VehicleParams
+from vehicle_estimation.contract.vehicle import DRIVEN_WHEELS, VehicleParams
 
 __all__ = [
     "VehicleInputs",
@@ -90,6 +90,7 @@ __all__ = [
     "free_rolling_wheel_speeds",
     "wheel_forward_speeds",
     "aerodynamic_drag",
+    "longitudinal_forces_known",
     "STATE_NAMES",
     "MEASUREMENT_NAMES",
     "DEFAULT_MIN_SPEED",
@@ -238,12 +239,16 @@ def _make_geometry(params: VehicleParams) -> _WheelGeometry:
         fz_nominal=np.array([front, front, rear, rear]) * params.mass * params.gravity,
         load_ax=np.array([-h / (2.0 * L), -h / (2.0 * L), h / (2.0 * L), h / (2.0 * L)]),
         load_ay=np.array([-dfront, dfront, -drear, drear]),
-        drive_share=_DRIVE_MASKS[params.driven_axle] / _DRIVE_MASKS[params.driven_axle].sum(),
+        drive_share=_drive_share(params.driven_axle),
     )
 
 
-_DRIVE_MASKS = {"front": np.array([1.0, 1.0, 0.0, 0.0]), "rear": np.array([0.0, 0.0, 1.0, 1.0]),
-                "all": np.ones(4)}
+def _drive_share(driven_axle: str) -> np.ndarray:
+    """Share of the drive per wheel: equal parts on the driven wheels."""
+    wheels = DRIVEN_WHEELS[driven_axle]
+    share = np.zeros(4)
+    share[list(wheels)] = 1.0 / len(wheels)
+    return share
 
 
 def _wheel_velocities(vx, vy, r, delta, params: VehicleParams, min_speed: float):
@@ -321,12 +326,18 @@ def _dugoff(slip, alpha, fz, params: VehicleParams, mu_fz=None):
     return kx * scale, ky * scale
 
 
-def _fallback_fx(inputs: VehicleInputs, fz, params: VehicleParams):
+def _fallback_fx(inputs: VehicleInputs, mu_fz, params: VehicleParams):
     """Quasi-static longitudinal forces from torques or the drive force (wheel inertia
-    neglected), clipped to the friction limit."""
+    neglected), clipped to the friction limit ``mu_fz``."""
     fx = wheel_torques(inputs, params) / params.wheel_radius
-    lim = params.road_friction * fz
-    return np.clip(fx, -lim, lim)
+    return np.clip(fx, -mu_fz, mu_fz)
+
+
+def longitudinal_forces_known(inputs: VehicleInputs, slip_forces: bool = True) -> bool:
+    """Whether the model has the longitudinal tyre forces (and so ``ax``): from the measured
+    wheel slip (with ``slip_forces``) or from torques. Else the fallback: the drive force the
+    caller sets from its own ``ax`` estimate, and ``ax`` a random walk (module docstring)."""
+    return (slip_forces and inputs.wheel_speeds_valid) or inputs.torques_valid
 
 
 def wheel_torques(inputs: VehicleInputs, params: VehicleParams) -> np.ndarray:
@@ -368,9 +379,9 @@ def tyre_forces(state, inputs: VehicleInputs, params: VehicleParams, *,
         from_slip = True
     else:
         slip = np.zeros_like(vt)
-        fx = _fallback_fx(inputs, fz, params)
-        # the friction ellipse: the lateral force has what the longitudinal one leaves
         mu_fz = params.road_friction * fz
+        fx = _fallback_fx(inputs, mu_fz, params)
+        # the friction ellipse: the lateral force has what the longitudinal one leaves
         _, fy = _dugoff(slip, alpha, fz, params, np.sqrt(np.maximum(mu_fz * mu_fz - fx * fx, 0.0)))
         fx = np.broadcast_to(fx, fy.shape)
         from_slip = False
@@ -420,7 +431,7 @@ def _body_accelerations(x, inputs: VehicleInputs, params: VehicleParams, min_spe
     drag = aerodynamic_drag(vx, params)
     ax = (sums[..., 0] - drag) / mass - params.gravity * math.sin(inputs.slope)   # Eq. 2
     ay = sums[..., 1] / mass                                                        # Eq. 3
-    ax_known = tf.longitudinal_from_slip or inputs.torques_valid
+    ax_known = longitudinal_forces_known(inputs, slip_forces)
     return ax, ay, sums[..., 2] / params.yaw_inertia, ax_known                    # Eq. 4
 
 
