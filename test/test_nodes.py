@@ -301,6 +301,53 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
         h.close()
 
 
+@pytest.mark.parametrize("corners", [True, False])
+def test_state_node_without_any_speed_measures_vx_in_corners(corners):
+    """No wheel speeds, no vehicle/speed, an accelerometer biased by +0.3 m/s^2, on a steady
+    circle at 20 m/s and 0.25 rad/s: mean(ay) / mean(r) measures vx in the turn and holds it,
+    and /diagnostics says so; with cornering_speed_accel_std 0 nothing but the tyre model
+    updates vx (on this circle, which the model explains, that holds it too; the real drive's
+    limit corners do not: test_vbackf). Either way the sideslip is never flagged converged."""
+    vx_true, r_true = 20.0, 0.25
+    node = StateNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("initial_vx", value=vx_true),
+        Parameter("cornering_speed_accel_std", value=1.0 if corners else 0.0)])
+    h = Harness(node)
+    try:
+        topics_in = [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)]
+        for msg_type, topic in topics_in:
+            h.probe.publisher_for(msg_type, topic)
+        state = h.probe.watch(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
+        sideslip = h.probe.watch(Vector3Stamped, topics.SIDESLIP_STAMPED)
+        h.connect([topic for _, topic in topics_in])
+        p = node.vehicle
+        steering_wheel = p.steering_ratio * p.wheelbase * r_true / vx_true
+        stream = []
+        for i in range(4000):
+            ti = T0 + i * 0.005
+            if i % 2 == 0:
+                js = JointState()
+                sec_to_time(ti, js.header.stamp)
+                js.name = [topics.STEERING_JOINT]
+                js.position = [steering_wheel]
+                stream.append((topics.JOINT_STATES, js))
+            stream.append((topics.IMU, imu_msg(ti, [0.3, vx_true * r_true, G], [0, 0, r_true])))
+        h.publish_stream(stream)
+        assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 19)
+        assert h.wait_for(lambda: len(sideslip) > 100)
+        vx = state[-1].twist.twist.linear.x
+        assert not any(m.vector.z > 0.5 for m in sideslip)
+        if corners:
+            assert vx == pytest.approx(vx_true, abs=0.5), vx
+            assert node.core.speed_updates >= 30
+            assert node.vx_source.startswith("dead reckoning from ax, measured in corners"), node.vx_source
+        else:
+            assert node.core.speed_updates == 0
+            assert node.vx_source.startswith("dead reckoning from ax (no wheel"), node.vx_source
+    finally:
+        h.close()
+
+
 def _mass_drive_stream(p, mass_true: float, slope_msgs: bool, low_accel: float = 0.2, v0: float = 5.0):
     """40 s of pulses of 1.2 m/s^2 and ``low_accel`` on a level road: IMU, CAN speed, wheels
     (brake torque when the pulse decelerates harder than the resistances), drive force, slope."""

@@ -15,6 +15,7 @@ import yaml
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS, merge_ros_parameters
+from vehicle_estimation.estimators.state.core import DEFAULT_CORNERING_ACCEL_STD
 from vehicle_estimation.io.bag_survey import InspectError, TopicStats
 from vehicle_estimation.ros import PIPELINE
 
@@ -192,7 +193,9 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
         else:
             hint = (" (vehicle/speed is there: set vehicle_state speed_fallback: true to use it)"
                     if have_speed else "")
-            lines.append(f"no wheel speeds: vx dead-reckoned from ax (drifts){hint}")
+            corners = (", measured in every corner as mean(ay) / mean(r)"
+                       if float(vs.get("cornering_speed_accel_std", DEFAULT_CORNERING_ACCEL_STD)) > 0.0 else "")
+            lines.append(f"no wheel speeds: vx dead-reckoned from ax (drifts){corners}{hint}")
             state_vx = "dead_reckoned"
         if have_js and _reported(inputs, JS, topics.STEERING_JOINT, "position"):
             lines.append("steering from steering_wheel")

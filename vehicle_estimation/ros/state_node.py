@@ -75,6 +75,7 @@ from vehicle_estimation.estimators.state.gabpnn import (
 )
 from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
 from vehicle_estimation.estimators.state.core import ModelErrorSettings, RollAccelerationTerm
+from vehicle_estimation.estimators.state import core as state_core
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -95,6 +96,8 @@ from vehicle_estimation.ros.runtime.upstream import (
 VX_FROM_WHEELS = "wheel speeds"
 VX_FROM_SPEED = "vehicle/speed (fallback: no wheel speeds)"
 VX_DEAD_RECKONED = "dead reckoning from ax (no wheel speeds, no vehicle/speed): drifts"
+VX_FROM_CORNERING = ("dead reckoning from ax, measured in corners as mean(ay) / mean(r) (no wheel "
+                     "speeds, no vehicle/speed): drifts on straights")
 
 #: The upstream inputs by the names /diagnostics gives them when missing ("missing: ...").
 SLOPE_INPUT = "road slope"
@@ -218,6 +221,16 @@ class StateNode(EstimatorNode):
         # Same white-noise equivalent: the published vx variance then grows as the drift does,
         # and the slope and mass nodes stop taking that vx as a speed (MAX_MEASURED_SPEED_STD).
         self.dead_reckoning_noise_density = 2.0 * dead_reckoning_std ** 2 * GRADE_CORRELATION_S
+        cornering_std = self.declare_float(
+            "cornering_speed_accel_std", state_core.DEFAULT_CORNERING_ACCEL_STD,
+            "While no wheel speed or vehicle/speed measures vx, it is measured in every corner as "
+            "mean(ay) / mean(r) over 0.5 s (a_y = vy' + vx r): the window's vy' and the ay of "
+            "body roll and road bank, this std [m/s^2], over |mean(r)| give its error; "
+            "0 = off (vx only dead-reckoned)", 0.0, 10.0)
+        self.cornering_speed = None if cornering_std <= 0.0 else state_core.CorneringSpeed(
+            accel_std=cornering_std, min_yaw_rate=self.declare_float(
+                "cornering_speed_min_yaw_rate", state_core.DEFAULT_CORNERING_MIN_YAW_RATE,
+                "Below this |mean(r)| a window tells nothing of vx [rad/s]", 0.01, 2.0))
         self.min_dynamic_speed = self.declare_float(
             "sideslip_min_speed", 3.0,
             "Below this |vx| the sideslip is the kinematic one from the steering angle [m/s]", 0.0, 20.0)
@@ -307,6 +320,19 @@ class StateNode(EstimatorNode):
             if self.core.update_speed(self.speed[1], variance):
                 self._last_speed_used_t = self.speed[0]
                 self.speed = None
+
+    def _update_cornering_speed(self, t: float, z: np.ndarray, vx_measured: bool) -> None:
+        """vx from cornering (mean(ay) / mean(r)) while nothing else measures it."""
+        if self.cornering_speed is None:
+            return
+        if vx_measured:
+            self.cornering_speed.reset()
+            return
+        if self.vx_source == VX_DEAD_RECKONED:
+            self.vx_source = VX_FROM_CORNERING
+        found = self.cornering_speed.add(t, float(z[1]), float(z[2]))
+        if found is not None:
+            self.core.update_speed(*found)
 
     def _roll_gravity(self, t: float) -> float:
         """The gravity on the body y axis at ``t`` [m/s^2] (0 without a fresh fusion attitude)."""
@@ -400,6 +426,7 @@ class StateNode(EstimatorNode):
         rear_wheels_measured = bool(np.isfinite(wheels[2:]).all())
         if self.speed_fallback:
             self._update_speed_fallback(t, rear_wheels_measured)
+        self._update_cornering_speed(t, z, rear_wheels_measured or self.vx_source == VX_FROM_SPEED)
         # Without a speed measurement vx integrates the accelerometer and drifts without bound,
         # and the sideslip with it: still published, never as converged.
         self._vx_measured = rear_wheels_measured or self.vx_source == VX_FROM_SPEED

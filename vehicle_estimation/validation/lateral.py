@@ -47,6 +47,7 @@ import yaml
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.registry import StateSettings, build_state_filter
 from vehicle_estimation.estimators.state.core import RollAccelerationTerm
+from vehicle_estimation.estimators.state import core as state_core
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.validation.stanford import baseline_linear_kf
@@ -155,6 +156,15 @@ def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:
     return tru["lateral_gravity"][i]
 
 
+def cornering_speed_from(node: dict) -> state_core.CorneringSpeed | None:
+    """The state node's cornering speed (``cornering_speed_*``), None where it is off."""
+    std = float(node.get("cornering_speed_accel_std", state_core.DEFAULT_CORNERING_ACCEL_STD))
+    if std <= 0.0:
+        return None
+    return state_core.CorneringSpeed(accel_std=std, min_yaw_rate=float(
+        node.get("cornering_speed_min_yaw_rate", state_core.DEFAULT_CORNERING_MIN_YAW_RATE)))
+
+
 def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool,
              roll: str = DEFAULT_ROLL, roll_lever: float | None = None,
              overrides: dict | None = None) -> dict[str, np.ndarray]:
@@ -173,6 +183,7 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
     missing_slope_noise = 2.0 * (vehicle.gravity * math.sin(missing_slope_std)) ** 2 * GRADE_CORRELATION_S
     dead_reckoning_noise = 2.0 * float(node.get("dead_reckoning_accel_std", DEAD_RECKONING_ACCEL_STD)) ** 2 \
         * GRADE_CORRELATION_S
+    cornering = cornering_speed_from(node)
     vx_measured = False
     ji = si = 0
     n_js, n_sp = js["t"].size, sp["t"].size
@@ -227,6 +238,10 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
         if not rear_wheels_measured and speed_fresh and core.update_speed(speed[1], speed[2]):
             speed = None
         vx_measured = rear_wheels_measured or speed_fresh
+        if cornering is not None:
+            found = None if vx_measured else cornering.add(t, float(z[1]), float(z[2]))
+            if found is not None:
+                core.update_speed(*found)
         x = np.asarray(core.x, dtype=float)
         out.append((t, x[0], x[1], x[2], float(core.sideslip), float(core.P[1, 1])))
     a = np.array(out)
