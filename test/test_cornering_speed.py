@@ -45,6 +45,18 @@ def test_nothing_is_measured_on_a_straight_or_from_bad_samples():
     assert shared == pytest.approx(4.0 * white, rel=0.05)
 
 
+def test_a_vibrating_window_carries_its_mean_s_own_error():
+    t = np.arange(0.0, 0.6, 0.01)
+    shake = 4.0 * np.where(np.arange(t.size) % 2 == 0, 1.0, -1.0)
+    (_, quiet), = _feed(CorneringSpeed(accel_std=0.7, correlation_s=0.0), t, np.full(t.size, 5.0),
+                        np.full(t.size, 0.5))
+    (vx, shaken), = _feed(CorneringSpeed(accel_std=0.7, correlation_s=0.0), t, 5.0 + shake[:t.size],
+                          np.full(t.size, 0.5))
+    assert vx == pytest.approx(10.0, abs=0.2)
+    n = 51                                          # samples in the first 0.5 s window
+    assert shaken == pytest.approx(quiet + 16.0 / (n - 1) / 0.25, rel=0.05)
+
+
 def test_a_stamp_going_back_starts_a_new_window():
     speed = CorneringSpeed()
     for k in range(40):

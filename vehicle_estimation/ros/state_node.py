@@ -225,8 +225,8 @@ class StateNode(EstimatorNode):
             "cornering_speed_accel_std", state_core.DEFAULT_CORNERING_ACCEL_STD,
             "While no wheel speed or vehicle/speed measures vx, it is measured in every corner as "
             "mean(ay) / mean(r) over 0.5 s (a_y = vy' + vx r): the window's vy' and the ay of "
-            "body roll and road bank, this std [m/s^2], over |mean(r)| give its error; "
-            "0 = off (vx only dead-reckoned)", 0.0, 10.0)
+            "body roll and road bank, this std [m/s^2] (plus the mean's own, from the samples' "
+            "spread), over |mean(r)| give its error; 0 = off (vx only dead-reckoned)", 0.0, 10.0)
         self.cornering_speed = None if cornering_std <= 0.0 else state_core.CorneringSpeed(
             accel_std=cornering_std, min_yaw_rate=self.declare_float(
                 "cornering_speed_min_yaw_rate", state_core.DEFAULT_CORNERING_MIN_YAW_RATE,

@@ -39,7 +39,7 @@ from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 
 
 #: The state node's defaults (``cornering_speed_accel_std``, ``cornering_speed_min_yaw_rate``).
-DEFAULT_CORNERING_ACCEL_STD = 1.0
+DEFAULT_CORNERING_ACCEL_STD = 0.7
 DEFAULT_CORNERING_MIN_YAW_RATE = 0.2
 
 
@@ -59,7 +59,8 @@ class CorneringSpeed:
     bank) are ``accel_std``, over ``|mean(r)|`` in vx. On the real Stanford drive (100 Hz, a
     track, |ay| up to 16.6 m/s^2) the 0.5 s windows at ``|r| > 0.2 rad/s`` (46 % of them) give
     vx with no bias and that error at 0.6 m/s^2, most of it the window's ``v_y'`` (correlation
-    0.8); successive windows share little of it (0.19: ``correlation_s``). Below
+    0.8); successive windows share little of it (0.19: ``correlation_s``). The mean's own
+    error, the spread of the window's samples over their number (vibration), adds to it. Below
     ``min_yaw_rate`` the ratio says nothing: no measurement.
 
     Feed every filter step's (roll-compensated) lateral acceleration and yaw rate to
@@ -83,7 +84,7 @@ class CorneringSpeed:
 
     def reset(self) -> None:
         self._start = math.nan
-        self._ay_sum = self._r_sum = 0.0
+        self._ay_sum = self._ay_square_sum = self._r_sum = 0.0
         self._count = 0
 
     def add(self, t: float, ay: float, yaw_rate: float) -> tuple[float, float] | None:
@@ -94,17 +95,22 @@ class CorneringSpeed:
             self.reset()
             self._start = t
         self._ay_sum += ay
+        self._ay_square_sum += ay * ay
         self._r_sum += yaw_rate
         self._count += 1
         span = t - self._start
         if span < self.window_s:
             return None
-        ay_mean, r_mean = self._ay_sum / self._count, self._r_sum / self._count
+        n = self._count
+        ay_mean, r_mean = self._ay_sum / n, self._r_sum / n
+        # the mean's own error, from the spread within the window (vibration, engine)
+        ay_mean_variance = max(self._ay_square_sum / n - ay_mean * ay_mean, 0.0) / max(n - 1, 1)
         self.reset()
         if abs(r_mean) < self.min_yaw_rate:
             return None
         vx = ay_mean / r_mean
-        variance = white_equivalent_variance((self.accel_std / r_mean) ** 2, self.correlation_s, span)
+        variance = white_equivalent_variance((self.accel_std ** 2 + ay_mean_variance) / r_mean ** 2,
+                                             self.correlation_s, span)
         return (vx, variance) if math.isfinite(vx) else None
 
 
