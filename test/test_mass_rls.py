@@ -161,6 +161,28 @@ def test_estimator_drive_force_and_regression_paths():
     assert abs(est2.mass - 1700.0) / 1700.0 < 0.01
 
 
+def test_a_calibrated_map_s_scale_error_is_in_the_variance():
+    """A map that reads 3 % high puts the mass 3 % high on every drive, which no residual shows:
+    with the map's relative std (calibrate writes it) the published sigma covers the error; a
+    map said to be exact keeps the old sigma, and the estimates are the same either way."""
+    t, v, a, slope, torque, omega, gear, force = _synthetic_drive(AUDI, 1700.0, n=12000)
+    load = 1.03 * torque * AUDI.driveline_efficiency
+    results = {}
+    for relative_std in (0.0, 0.03):
+        cfg = MassRLSConfig(torque_regression=[0.0, 1.0], torque_regression_speed_unit="rad/s",
+                            torque_regression_relative_std=relative_std)
+        est = LongitudinalMassEstimator(AUDI, cfg)
+        for k in range(len(t)):
+            est.step(t[k], v[k], a[k], slope[k], engine_load=load[k], engine_speed=omega[k])
+        results[relative_std] = (est.mass, math.sqrt(est.variance))
+    (mass0, sigma0), (mass3, sigma3) = results[0.0], results[0.03]
+    assert mass0 == mass3 and mass0 / 1700.0 - 1.0 > 0.02
+    assert abs(mass3 - 1700.0) <= 2.0 * sigma3 and abs(mass0 - 1700.0) > 3.0 * sigma0
+    state = LongitudinalMassEstimator(AUDI, cfg)
+    state.load_state_dict(est.state_dict())
+    assert state.variance == pytest.approx(est.variance)
+
+
 def test_gating_rejects_braking_negative_accel_nan_and_missing_force():
     est = LongitudinalMassEstimator(AUDI)
     omega = AUDI.effective_gearing(3) * 15.0

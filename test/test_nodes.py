@@ -244,6 +244,24 @@ def test_state_node_estimates_speed_from_wheels_and_imu(filter_name):
         h.close()
 
 
+def steering_msg(t: float, angle: float) -> JointState:
+    js = JointState()
+    sec_to_time(t, js.header.stamp)
+    js.name = [topics.STEERING_JOINT]
+    js.position = [angle]
+    return js
+
+
+def watch_state_outputs(h: Harness, topics_in: list) -> tuple[list, list]:
+    """Publishers for ``topics_in`` ((type, topic) pairs) and watches of the state and sideslip."""
+    for msg_type, topic in topics_in:
+        h.probe.publisher_for(msg_type, topic)
+    state = h.probe.watch(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
+    sideslip = h.probe.watch(Vector3Stamped, topics.SIDESLIP_STAMPED)
+    h.connect([topic for _, topic in topics_in])
+    return state, sideslip
+
+
 @pytest.mark.parametrize("fallback", [True, False])
 def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
     """No wheel speeds, an accelerometer biased by +0.3 m/s^2 at a steady 20 m/s: the CAN speed
@@ -258,20 +276,12 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
                      (Vector3Stamped, topics.ROAD_SLOPE_STAMPED), (Vector3Stamped, topics.MASS_STAMPED)]
         if fallback:
             topics_in.append((TwistWithCovarianceStamped, topics.SPEED))
-        for msg_type, topic in topics_in:
-            h.probe.publisher_for(msg_type, topic)
-        state = h.probe.watch(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
-        sideslip = h.probe.watch(Vector3Stamped, topics.SIDESLIP_STAMPED)
-        h.connect([topic for _, topic in topics_in])
+        state, sideslip = watch_state_outputs(h, topics_in)
         stream = []
         for i in range(2000):
             ti = T0 + i * 0.005
             if i % 2 == 0:
-                js = JointState()
-                sec_to_time(ti, js.header.stamp)
-                js.name = [topics.STEERING_JOINT]
-                js.position = [0.0]
-                stream.append((topics.JOINT_STATES, js))
+                stream.append((topics.JOINT_STATES, steering_msg(ti, 0.0)))
                 if fallback:
                     stream.append((topics.SPEED, speed_msg(ti, 20.0)))
             if i % 10 == 0:
@@ -314,23 +324,14 @@ def test_state_node_without_any_speed_measures_vx_in_corners(corners):
         Parameter("cornering_speed_accel_std", value=1.0 if corners else 0.0)])
     h = Harness(node)
     try:
-        topics_in = [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)]
-        for msg_type, topic in topics_in:
-            h.probe.publisher_for(msg_type, topic)
-        state = h.probe.watch(TwistWithCovarianceStamped, topics.VEHICLE_STATE)
-        sideslip = h.probe.watch(Vector3Stamped, topics.SIDESLIP_STAMPED)
-        h.connect([topic for _, topic in topics_in])
+        state, sideslip = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)])
         p = node.vehicle
         steering_wheel = p.steering_ratio * p.wheelbase * r_true / vx_true
         stream = []
         for i in range(4000):
             ti = T0 + i * 0.005
             if i % 2 == 0:
-                js = JointState()
-                sec_to_time(ti, js.header.stamp)
-                js.name = [topics.STEERING_JOINT]
-                js.position = [steering_wheel]
-                stream.append((topics.JOINT_STATES, js))
+                stream.append((topics.JOINT_STATES, steering_msg(ti, steering_wheel)))
             stream.append((topics.IMU, imu_msg(ti, [0.3, vx_true * r_true, G], [0, 0, r_true])))
         h.publish_stream(stream)
         assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 19)

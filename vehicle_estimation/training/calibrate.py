@@ -351,6 +351,8 @@ def params_document(result: CalibrationResult, base: VehicleParams, mass: float)
     vehicle["gear_ratios"] = [_rounded(g, 5) for g in vehicle["gear_ratios"]]
     mass_section = {"torque_regression": [_rounded(w, 8) for w in result.torque_regression()],
                     "torque_regression_speed_unit": "rpm"}
+    if math.isfinite(result.fit.relative_std):
+        mass_section["torque_regression_relative_std"] = _rounded(result.fit.relative_std, 6)
     return {"/**": {"ros__parameters": {"vehicle": vehicle}}, "mass": {"ros__parameters": {"mass": mass_section}}}
 
 
@@ -369,7 +371,8 @@ def summary(result: CalibrationResult, base: VehicleParams | None = None) -> str
         if j <= len(ref):
             extra = f"   base i_t {ref[j - 1]:.3f}  error {100.0 * (it / ref[j - 1] - 1.0):+.2f} %"
         lines.append(f"  gear {j}: G = {G:8.3f}  ({G * 30 / math.pi:6.1f} rpm/(m/s))  i_t = {it:.4f}{extra}")
-    lines.append(f"torque fit (Eqs. 48-49, {f.n_samples} windows of 0.25 s): R^2 = {f.r2:.4f}, RMSE = {f.rmse:.2f} N m")
+    lines.append(f"torque fit (Eqs. 48-49, {f.n_samples} windows of 0.25 s): R^2 = {f.r2:.4f}, RMSE = {f.rmse:.2f} N m, "
+                 f"map known to {100.0 * f.relative_std:.2f} % (relative std at the mean operating point)")
     names = ("w0 [N m]", "w1 [N m per load]") + tuple(f"w{k + 2} [N m/rpm^{k + 1}]" for k in range(result.speed_order))
     for name, w in zip(names, f.coefficients):
         lines.append(f"  {name:<22}{w: .6g}")

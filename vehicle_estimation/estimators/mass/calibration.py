@@ -225,6 +225,10 @@ class TorqueModelFit:
     rmse: float                    # [N m]
     n_samples: int
     on_grid_edge: tuple[str, ...]  # parameters whose optimum is at a limit of the grid
+    #: Relative std of the fitted torque at the mean operating point of the fit (the
+    #: coefficients' covariance, widened by the residuals' correlation between consecutive
+    #: samples): how well the map is known, a scale error that every drive on it shares [-]
+    relative_std: float = math.nan
 
     def parameters(self) -> dict[str, float]:
         return {name: float(getattr(self, name)) for name in GRID_PARAMETERS}
@@ -271,7 +275,29 @@ def grid_search(X: np.ndarray, b0: np.ndarray, B: np.ndarray,
         drag_area=float(th[1]), rolling_resistance=float(th[2]), engine_inertia=float(th[3]),
         wheel_inertia=float(th[4]), coefficients=tuple(float(x) for x in w),
         r2=1.0 - ss_res / ss_tot if ss_tot > 0.0 else float("nan"),
-        rmse=math.sqrt(ss_res / n), n_samples=int(n), on_grid_edge=edge)
+        rmse=math.sqrt(ss_res / n), n_samples=int(n), on_grid_edge=edge,
+        relative_std=map_relative_std(X / scale, w_scaled, residual))
+
+
+def map_relative_std(X: np.ndarray, w: np.ndarray, residual: np.ndarray) -> float:
+    """Relative std of the least-squares fit ``X w`` at the mean row of ``X`` (rows in time
+    order): ``sqrt(x_mean^T C x_mean) / |x_mean^T w|`` with the coefficient covariance
+    ``C = s^2 (X^T X)^-1 (1 + rho) / (1 - rho)``. A torque map's error depends on the
+    operating point, which changes over seconds, so consecutive residuals correlate (rho, their
+    lag-1 correlation, clipped to [0, 0.99]) and the fit knows its coefficients by that much
+    less than white residuals would say (an AR(1) sequence's effective sample count)."""
+    n, k = X.shape
+    if n <= k:
+        return math.nan
+    s2 = float(residual @ residual) / (n - k)
+    lagged = float(residual[:-1] @ residual[:-1])
+    rho = float(residual[1:] @ residual[:-1]) / lagged if lagged > 0.0 else 0.0
+    rho = min(max(rho, 0.0), 0.99)
+    covariance = s2 * (1.0 + rho) / (1.0 - rho) * np.linalg.pinv(X.T @ X)
+    x_mean = X.mean(axis=0)
+    torque = float(x_mean @ w)
+    spread = float(x_mean @ covariance @ x_mean)
+    return math.sqrt(max(spread, 0.0)) / abs(torque) if torque != 0.0 else math.nan
 
 
 def fit_torque_model(mass: float, v: np.ndarray, a: np.ndarray, slope: np.ndarray, gearing: np.ndarray,

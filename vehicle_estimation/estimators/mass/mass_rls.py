@@ -87,6 +87,10 @@ class MassRLSConfig(ForgettingConfig):
                                     "over r), propulsion (eta T_e G of Eq. 1) or tractive (tyre-road force)",
                                     choices=DRIVE_FORCE_KINDS)
     torque_regression: list[float] = setting([], "Engine torque map w0..wn of Eq. (49) (calibrate writes it)")
+    torque_regression_relative_std: float = setting(
+        0.0, "Relative std of that map's torque where the calibration drive ran (calibrate writes it from "
+        "the fit's coefficient covariance): a scale error of the propulsion force that lasts, which the "
+        "mass variance carries [-]", low=0.0, high=1.0)
     torque_regression_speed_unit: str = setting("rpm", "Unit of N_e in Eq. (49) (rpm as Table 6, or rad/s)",
                                                 choices=("rpm", "rad/s"))
     # --- ambient wind (not in the paper, its Sec. 8 open problem): with wind_compensation the
@@ -356,6 +360,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             return self._reject("gear_shift")
 
         wheel_inertia = p.wheel_inertia / p.wheel_radius ** 2
+        force_error = 0.0
         if have_drive:
             force = float(drive_force)
             if cfg.drive_force_kind == "wheel":
@@ -376,6 +381,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
                 return self._reject("propulsion")
             force = self.regression.torque(float(engine_load), float(engine_speed)) * G      # Eq. (49), eta = 1
             inertia = wheel_inertia + p.engine_inertia * G * G
+            force_error = cfg.torque_regression_relative_std * abs(force)
         if not force > cfg.min_propulsion_force:
             return self._reject("propulsion")
 
@@ -394,4 +400,5 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
 
         self.rls.update(phi, y)                                                   # Eqs. (7)-(9)
         return self._accepted(t, phi, y, self.rls.last_residual ** 2, regressor_bias_variance,
-                              regressor_bias_correlation_s, regressor_noise_variance=accel_noise_variance)
+                              regressor_bias_correlation_s, regressor_noise_variance=accel_noise_variance,
+                              lasting_force_error=force_error)
