@@ -258,8 +258,8 @@ def run_core(w: DriveWindows, vehicle: VehicleParams, regression: Sequence[float
              trace: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, LongitudinalMassEstimator]:
     """Published mass after every window (the core's output as the node would publish it). The
     core is told the slope's error (``SLOPE_NOISE_DEG`` over ``SLOPE_NOISE_TAU``) as the node tells
-    it the fusion's, and the map's own error (``map_relative_std``, as calibrate writes it);
-    ``trace`` (a dict) gets the published 'variance' and 'converged' per window."""
+    it the fusion's, and the map's error (``map_relative_std``, as calibrate writes it); ``trace``
+    (a dict) gets the published 'variance' and 'converged' per window."""
     cfg = MassRLSConfig(forgetting_factor=forgetting, torque_regression=list(regression), wind_compensation=wind,
                         rolling_resistance_estimation=rolling_resistance,
                         torque_regression_relative_std=map_relative_std)
@@ -361,8 +361,7 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
         m_off, _ = run_core(w, fitted, regression)
         m_on, core_on = run_core(w, fitted, regression, wind=True)
         shipped: dict[str, np.ndarray] = {}
-        m_cr, core_cr = run_core(w, fitted, regression, wind=True, rolling_resistance=True, trace=shipped,
-                                 map_relative_std=map_std)
+        m_cr, core_cr = run_core(w, fitted, regression, wind=True, rolling_resistance=True, trace=shipped, map_relative_std=map_std)
         assert core_on.wind is not None and core_cr.wind is not None
         m_off_stats = drive_metrics(m_off, w.true_mass, w.distance, converge_m)
         m_on_stats = drive_metrics(m_on, w.true_mass, w.distance, converge_m)
