@@ -74,8 +74,9 @@ from vehicle_estimation.estimators.state.gabpnn import (
     load_correction,
 )
 from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
-from vehicle_estimation.estimators.state.core import ModelErrorSettings, RollAccelerationTerm
-from vehicle_estimation.estimators.state import core as state_core
+from vehicle_estimation.estimators.state.core import (
+    DEFAULT_CORNERING_ACCEL_STD, DEFAULT_CORNERING_MIN_YAW_RATE, CorneringSpeed, ModelErrorSettings,
+    RollAccelerationTerm)
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -222,14 +223,14 @@ class StateNode(EstimatorNode):
         # and the slope and mass nodes stop taking that vx as a speed (MAX_MEASURED_SPEED_STD).
         self.dead_reckoning_noise_density = 2.0 * dead_reckoning_std ** 2 * GRADE_CORRELATION_S
         cornering_std = self.declare_float(
-            "cornering_speed_accel_std", state_core.DEFAULT_CORNERING_ACCEL_STD,
+            "cornering_speed_accel_std", DEFAULT_CORNERING_ACCEL_STD,
             "While no wheel speed or vehicle/speed measures vx, it is measured in every corner as "
             "mean(ay) / mean(r) over 0.5 s (a_y = vy' + vx r): the window's vy' and the ay of "
             "body roll and road bank, this std [m/s^2] (plus the mean's own, from the samples' "
             "spread), over |mean(r)| give its error; 0 = off (vx only dead-reckoned)", 0.0, 10.0)
-        self.cornering_speed = None if cornering_std <= 0.0 else state_core.CorneringSpeed(
+        self.cornering_speed = None if cornering_std <= 0.0 else CorneringSpeed(
             accel_std=cornering_std, min_yaw_rate=self.declare_float(
-                "cornering_speed_min_yaw_rate", state_core.DEFAULT_CORNERING_MIN_YAW_RATE,
+                "cornering_speed_min_yaw_rate", DEFAULT_CORNERING_MIN_YAW_RATE,
                 "Below this |mean(r)| a window tells nothing of vx [rad/s]", 0.01, 2.0))
         self.min_dynamic_speed = self.declare_float(
             "sideslip_min_speed", 3.0,
@@ -426,10 +427,11 @@ class StateNode(EstimatorNode):
         rear_wheels_measured = bool(np.isfinite(wheels[2:]).all())
         if self.speed_fallback:
             self._update_speed_fallback(t, rear_wheels_measured)
-        self._update_cornering_speed(t, z, rear_wheels_measured or self.vx_source == VX_FROM_SPEED)
-        # Without a speed measurement vx integrates the accelerometer and drifts without bound,
-        # and the sideslip with it: still published, never as converged.
+        # Without a speed measurement vx integrates the accelerometer and drifts (between
+        # corners, where they measure it), and the sideslip with it: still published, never
+        # as converged.
         self._vx_measured = rear_wheels_measured or self.vx_source == VX_FROM_SPEED
+        self._update_cornering_speed(t, z, self._vx_measured)
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_state(t)

@@ -46,8 +46,8 @@ import yaml
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.registry import StateSettings, build_state_filter
-from vehicle_estimation.estimators.state.core import RollAccelerationTerm
-from vehicle_estimation.estimators.state import core as state_core
+from vehicle_estimation.estimators.state.core import (
+    DEFAULT_CORNERING_ACCEL_STD, DEFAULT_CORNERING_MIN_YAW_RATE, CorneringSpeed, RollAccelerationTerm)
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.validation.stanford import baseline_linear_kf
@@ -156,13 +156,13 @@ def lateral_gravity(drive: dict, t: np.ndarray, source: str) -> np.ndarray:
     return tru["lateral_gravity"][i]
 
 
-def cornering_speed_from(node: dict) -> state_core.CorneringSpeed | None:
+def cornering_speed_from(node: dict) -> CorneringSpeed | None:
     """The state node's cornering speed (``cornering_speed_*``), None where it is off."""
-    std = float(node.get("cornering_speed_accel_std", state_core.DEFAULT_CORNERING_ACCEL_STD))
+    std = float(node.get("cornering_speed_accel_std", DEFAULT_CORNERING_ACCEL_STD))
     if std <= 0.0:
         return None
-    return state_core.CorneringSpeed(accel_std=std, min_yaw_rate=float(
-        node.get("cornering_speed_min_yaw_rate", state_core.DEFAULT_CORNERING_MIN_YAW_RATE)))
+    return CorneringSpeed(accel_std=std, min_yaw_rate=float(
+        node.get("cornering_speed_min_yaw_rate", DEFAULT_CORNERING_MIN_YAW_RATE)))
 
 
 def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool,

@@ -9,8 +9,9 @@ The paper-004 CKF / VB-ACKF (:mod:`.ckf`, :mod:`.vbackf`) and the paper-002 AO-U
 * start vx from the mean speed of two wheels times the wheel radius when asked to;
 * re-initialise, and count it, when the moments stop being a valid Gaussian (absurd inputs);
 * take a direct vx measurement (:meth:`VehicleStateCore.update_speed`) where there are no
-  wheel speeds (a bus speed, or the speed each corner shows: :class:`CorneringSpeed`), and an extra vx process noise (:attr:`extra_vx_noise_density`) that the node
-  sets while an input is unknown;
+  wheel speeds (a bus speed, or the speed each corner shows: :class:`CorneringSpeed`), and
+  an extra vx process noise (:attr:`extra_vx_noise_density`) that the node sets while an
+  input is unknown;
 * report the sideslip of Eq. 14 of paper 004 with its first-order variance;
 * publish a covariance that carries the tyre-stiffness error and the road bank the filters do
   not model (:class:`ModelErrorSettings`).
