@@ -66,6 +66,15 @@ def test_a_stamp_going_back_starts_a_new_window():
     assert found and found[0][0] == pytest.approx(16.0)
 
 
+def test_a_dropout_starts_a_new_window():
+    speed = CorneringSpeed()
+    for k in range(40):
+        assert speed.add(0.01 * k, 5.0, 0.5) is None
+    # 2 s without samples, then another turn: the window holds only the new one
+    found = _feed(speed, 2.4 + 0.01 * np.arange(60), np.full(60, 8.0), np.full(60, 0.5))
+    assert found and found[0][0] == pytest.approx(16.0)
+
+
 @pytest.mark.parametrize("name, value", [("accel_std", 0.0), ("min_yaw_rate", -1.0), ("window_s", math.nan),
                                          ("correlation_s", -0.5)])
 def test_bad_settings_are_refused_by_name(name, value):

@@ -84,17 +84,20 @@ class CorneringSpeed:
         self.reset()
 
     def reset(self) -> None:
-        self._start = math.nan
+        self._start = self._last = math.nan
         self._ay_sum = self._ay_square_sum = self._r_sum = 0.0
         self._count = 0
 
     def add(self, t: float, ay: float, yaw_rate: float) -> tuple[float, float] | None:
-        """One filter step's ``a_y`` [m/s^2] and ``r`` [rad/s] at ``t`` [s]."""
+        """One filter step's ``a_y`` [m/s^2] and ``r`` [rad/s] at ``t`` [s]. A stamp going back
+        (a bag loop) or a gap of a window or more (a dropout) starts a new window: a mean over
+        samples that far apart is no window's."""
         if not (math.isfinite(ay) and math.isfinite(yaw_rate)):
             return None
-        if not math.isfinite(self._start) or t < self._start:
+        if not math.isfinite(self._start) or t < self._last or t - self._last >= self.window_s:
             self.reset()
             self._start = t
+        self._last = t
         self._ay_sum += ay
         self._ay_square_sum += ay * ay
         self._r_sum += yaw_rate
