@@ -66,6 +66,15 @@ def test_a_stamp_going_back_starts_a_new_window():
     assert found and found[0][0] == pytest.approx(16.0)
 
 
+def test_while_vx_is_measured_no_window_fills():
+    speed = CorneringSpeed()
+    for k in range(40):
+        assert speed.step(0.01 * k, 5.0, 0.5, vx_measured=False) is None
+    assert speed.step(0.40, 5.0, 0.5, vx_measured=True) is None      # the open window is dropped
+    found = [f for k in range(41, 100) if (f := speed.step(0.01 * k, 8.0, 0.5, vx_measured=False))]
+    assert found and found[0][0] == pytest.approx(16.0)
+
+
 def test_a_dropout_starts_a_new_window():
     speed = CorneringSpeed()
     for k in range(40):

@@ -63,7 +63,7 @@ def _vy_errors_and_variance(drive, settings):
     vehicle = load_vehicle_params(params_file("commonroad_bmw320i"))
     build = lateral.make_core
     try:
-        lateral.make_core = lambda name, v: build_state_filter(name, v, settings=settings)
+        lateral.make_core = lambda name, v, overrides=None: build_state_filter(name, v, settings=settings)
         # without the roll acceleration (vehicle.roll_lever) the errors are twice as large: a
         # variance half as large as the published one is then caught, which the test shows
         est = lateral.run_core("vbackf", drive, vehicle, use_wheels=True, roll_lever=0.0)

@@ -326,12 +326,9 @@ class StateNode(EstimatorNode):
         """vx from cornering (mean(ay) / mean(r)) while nothing else measures it."""
         if self.cornering_speed is None:
             return
-        if vx_measured:
-            self.cornering_speed.reset()
-            return
         if self.vx_source == VX_DEAD_RECKONED:
             self.vx_source = VX_FROM_CORNERING
-        found = self.cornering_speed.add(t, float(z[1]), float(z[2]))
+        found = self.cornering_speed.step(t, float(z[1]), float(z[2]), vx_measured)
         if found is not None:
             self.core.update_speed(*found)
 

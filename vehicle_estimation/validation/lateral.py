@@ -175,7 +175,7 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
     ``roll``: the state node's ``roll_compensation`` (on by default there, with the fusion's
     attitude): ``truth`` takes ``g sin(roll) cos(pitch)`` of the ground-truth attitude out of
     the measured ay (the fusion at its best), ``none`` feeds the raw ay."""
-    core = make_core(name, vehicle, overrides) if overrides else make_core(name, vehicle)
+    core = make_core(name, vehicle, overrides)
     imu, js, sp = drive["imu"], drive["joints"], drive["speed"]
     g_y = vehicle.gravity * lateral_gravity(drive, imu["t"], roll)
     node = {**shipped_state_parameters(), **(overrides or {})}
@@ -238,10 +238,9 @@ def run_core(name: str, drive: dict, vehicle: VehicleParams, *, use_wheels: bool
         if not rear_wheels_measured and speed_fresh and core.update_speed(speed[1], speed[2]):
             speed = None
         vx_measured = rear_wheels_measured or speed_fresh
-        if cornering is not None:
-            found = None if vx_measured else cornering.add(t, float(z[1]), float(z[2]))
-            if found is not None:
-                core.update_speed(*found)
+        found = None if cornering is None else cornering.step(t, float(z[1]), float(z[2]), vx_measured)
+        if found is not None:
+            core.update_speed(*found)
         x = np.asarray(core.x, dtype=float)
         out.append((t, x[0], x[1], x[2], float(core.sideslip), float(core.P[1, 1])))
     a = np.array(out)

@@ -88,6 +88,14 @@ class CorneringSpeed:
         self._ay_sum = self._ay_square_sum = self._r_sum = 0.0
         self._count = 0
 
+    def step(self, t: float, ay: float, yaw_rate: float, vx_measured: bool) -> tuple[float, float] | None:
+        """One filter step as the state node takes it: while something else (wheel speeds, a
+        bus speed) measures vx, no window fills and the open one is dropped; else :meth:`add`."""
+        if vx_measured:
+            self.reset()
+            return None
+        return self.add(t, ay, yaw_rate)
+
     def add(self, t: float, ay: float, yaw_rate: float) -> tuple[float, float] | None:
         """One filter step's ``a_y`` [m/s^2] and ``r`` [rad/s] at ``t`` [s]. A stamp going back
         (a bag loop) or a gap of a window or more (a dropout) starts a new window: a mean over
