@@ -166,6 +166,9 @@ def test_calibrate_cli_on_a_simulated_bag(tmp_path):
     assert len(config.torque_regression) == 4
     assert config.torque_regression_speed_unit == "rpm"
     assert 0.0 < config.torque_regression_relative_std < 0.1     # how well the map is known
+    covariance = config.model_covariance()                        # the map and C_a, C_r, I_e, I_w
+    assert covariance is not None and covariance.shape == (8, 8)
+    assert np.all(np.linalg.eigvalsh(covariance) > -1e-9 * np.max(np.diag(covariance)))
     for j, gear in enumerate(gears):
         # only i_t i_d / r is observable; the file keeps the base i_d and r
         assert vehicle.effective_gearing(j + 1) == pytest.approx(AUDI.effective_gearing(gear), rel=0.02)
@@ -203,3 +206,51 @@ def test_the_map_s_relative_std_is_the_spread_of_refitted_maps():
         stds.append(map_relative_std(X, w, y - X @ w))
     spread = float(np.std(fits) / (X.mean(axis=0) @ w_true))
     assert float(np.mean(stds)) == pytest.approx(spread, rel=0.15)
+
+
+def _refits(rng, X, B, zeta, count=200, rho=0.9, sigma=6.0):
+    """Least-squares refits of b0 = [X, -B] zeta on fresh AR(1) residuals (``rho``): per refit
+    the fitted [w, theta] and joint_covariance's sigmas (no grid rounding)."""
+    from vehicle_estimation.estimators.mass.calibration import joint_covariance
+    Z = np.column_stack([X, -B])
+    scale = np.max(np.abs(Z), axis=0)
+    fits, sigmas = [], []
+    for _ in range(count):
+        e = np.empty(len(X))
+        e[0] = rng.normal()
+        for k in range(1, len(X)):
+            e[k] = rho * e[k - 1] + math.sqrt(1 - rho * rho) * rng.normal()
+        b0 = Z @ zeta + sigma * e
+        fit = np.linalg.lstsq(Z / scale, b0, rcond=None)[0] / scale
+        fits.append(fit)
+        sigmas.append(np.sqrt(np.diag(joint_covariance(X, B, b0 - Z @ fit, [0.0] * 4))))
+    return np.asarray(fits), np.asarray(sigmas)
+
+
+def test_the_joint_covariance_is_the_spread_of_refitted_vehicle_values():
+    """joint_covariance against Monte Carlo: T = X w + B theta (the Eq.-48 fit, unconstrained)
+    refitted on fresh AR(1) residuals (rho 0.9); the predicted sigma of each vehicle value is
+    the spread of the refits within 20 %. These columns change from sample to sample, so the
+    residuals' correlation hardly widens them; the white formula times (1 + rho) / (1 - rho),
+    right for a constant column, would be 4 times too wide. A slowly changing column (the
+    drag's, the speed held for a while) is widened as a mean is, and its sigma still matches."""
+    from vehicle_estimation.estimators.mass.calibration import joint_covariance
+    rng = np.random.default_rng(4)
+    n = 800
+    v = rng.uniform(8.0, 35.0, n)
+    X = np.column_stack([np.ones(n), rng.uniform(0.1, 1.0, n), rng.uniform(1000.0, 4000.0, n)])
+    B = np.column_stack([0.6 * v * v / 40.0, 1500.0 * 9.81 * (1.0 + 0.05 * rng.normal(size=n)) / 40.0,
+                         rng.uniform(0.0, 2.0, n) * 40.0, rng.uniform(0.0, 2.0, n) / (0.1 * 40.0)])
+    zeta = np.array([-20.0, 250.0, 0.01, 0.6, 0.010, 0.25, 5.0])
+    fits, sigmas = _refits(rng, X, B, zeta)
+    assert sigmas.mean(axis=0)[3:] == pytest.approx(fits.std(axis=0)[3:], rel=0.2)
+    residual = rng.normal(size=n)
+    rounded = joint_covariance(X, B, residual, [0.05, 0.002, 0.02, 1.0])
+    plain = joint_covariance(X, B, residual, [0.0] * 4)
+    assert rounded[3, 3] - plain[3, 3] == pytest.approx(0.05 ** 2 / 12.0, rel=1e-6)
+    assert np.allclose(rounded[:3, :3], plain[:3, :3])
+    slow = np.repeat(rng.uniform(8.0, 35.0, n // 40), 40)
+    B_slow = B.copy()
+    B_slow[:, 0] = 0.6 * slow * slow / 40.0
+    fits, sigmas = _refits(rng, X, B_slow, zeta)
+    assert sigmas.mean(axis=0)[3] == pytest.approx(fits.std(axis=0)[3], rel=0.2)

@@ -254,15 +254,16 @@ def drive_windows(result: Any, base: VehicleParams, seed: int) -> DriveWindows:
 
 
 def run_core(w: DriveWindows, vehicle: VehicleParams, regression: Sequence[float], *, forgetting: float = 0.9995,
-             wind: bool = False, rolling_resistance: bool = False, map_relative_std: float = 0.0,
+             wind: bool = False, rolling_resistance: bool = False, fit: Any = None,
              trace: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, LongitudinalMassEstimator]:
     """Published mass after every window (the core's output as the node would publish it). The
     core is told the slope's error (``SLOPE_NOISE_DEG`` over ``SLOPE_NOISE_TAU``) as the node tells
-    it the fusion's, and the map's error (``map_relative_std``, as calibrate writes it); ``trace``
-    (a dict) gets the published 'variance' and 'converged' per window."""
+    it the fusion's, and the calibration's own error (``fit``'s relative std and covariance, as
+    calibrate writes them); ``trace`` (a dict) gets the published 'variance' and 'converged' per window."""
+    relative_std = fit.relative_std if fit is not None and math.isfinite(fit.relative_std) else 0.0
     cfg = MassRLSConfig(forgetting_factor=forgetting, torque_regression=list(regression), wind_compensation=wind,
-                        rolling_resistance_estimation=rolling_resistance,
-                        torque_regression_relative_std=map_relative_std)
+                        rolling_resistance_estimation=rolling_resistance, torque_regression_relative_std=relative_std,
+                        torque_model_covariance=list(fit.covariance) if fit is not None else [])
     core = LongitudinalMassEstimator(vehicle, cfg)
     out = np.empty(w.t.size)
     variance, converged = np.empty(w.t.size), np.zeros(w.t.size, dtype=bool)
@@ -329,7 +330,6 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
     calib = calibrate_signals(signals, base.mass, base)
     fitted = calib.vehicle(base, base.mass)
     regression = calib.torque_regression()
-    map_std = calib.fit.relative_std if math.isfinite(calib.fit.relative_std) else 0.0
     log(summary(calib, base))
     gear_err = [100.0 * (g / b - 1.0) for g, b in zip(calib.transmission_ratios, base.gear_ratios)]
     cal_info = {
@@ -361,7 +361,7 @@ def run_campaign(out: Path, *, quick: bool = False, converge_km: float = 10.0, j
         m_off, _ = run_core(w, fitted, regression)
         m_on, core_on = run_core(w, fitted, regression, wind=True)
         shipped: dict[str, np.ndarray] = {}
-        m_cr, core_cr = run_core(w, fitted, regression, wind=True, rolling_resistance=True, trace=shipped, map_relative_std=map_std)
+        m_cr, core_cr = run_core(w, fitted, regression, wind=True, rolling_resistance=True, trace=shipped, fit=calib.fit)
         assert core_on.wind is not None and core_cr.wind is not None
         m_off_stats = drive_metrics(m_off, w.true_mass, w.distance, converge_m)
         m_on_stats = drive_metrics(m_on, w.true_mass, w.distance, converge_m)

@@ -353,6 +353,8 @@ def params_document(result: CalibrationResult, base: VehicleParams, mass: float)
                     "torque_regression_speed_unit": "rpm"}
     if math.isfinite(result.fit.relative_std):
         mass_section["torque_regression_relative_std"] = _rounded(result.fit.relative_std, 6)
+    if result.fit.covariance and all(math.isfinite(c) for c in result.fit.covariance):
+        mass_section["torque_model_covariance"] = [_rounded(c, 8) for c in result.fit.covariance]
     return {"/**": {"ros__parameters": {"vehicle": vehicle}}, "mass": {"ros__parameters": {"mass": mass_section}}}
 
 
@@ -374,16 +376,24 @@ def summary(result: CalibrationResult, base: VehicleParams | None = None) -> str
     lines.append(f"torque fit (Eqs. 48-49, {f.n_samples} windows of 0.25 s): R^2 = {f.r2:.4f}, RMSE = {f.rmse:.2f} N m, "
                  f"map known to {100.0 * f.relative_std:.2f} % (relative std at the mean operating point)")
     names = ("w0 [N m]", "w1 [N m per load]") + tuple(f"w{k + 2} [N m/rpm^{k + 1}]" for k in range(result.speed_order))
-    for name, w in zip(names, f.coefficients):
-        lines.append(f"  {name:<22}{w: .6g}")
-    for name, unit in (("drag_area", "m^2"), ("rolling_resistance", "-"), ("engine_inertia", "kg m^2"),
-                       ("wheel_inertia", "kg m^2")):
+    n = len(f.coefficients) + len(cal.GRID_PARAMETERS)
+    sigma = (np.sqrt(np.maximum(np.diag(np.asarray(f.covariance, dtype=float).reshape(n, n)), 0.0))
+             if len(f.covariance) == n * n else np.full(n, math.nan))
+
+    def spread(k: int) -> str:
+        return f" +- {sigma[k]:.2g}" if math.isfinite(sigma[k]) else ""
+
+    for k, (name, w) in enumerate(zip(names, f.coefficients)):
+        lines.append(f"  {name:<22}{w: .6g}{spread(k)}")
+    for k, (name, unit) in enumerate((("drag_area", "m^2"), ("rolling_resistance", "-"),
+                                      ("engine_inertia", "kg m^2"), ("wheel_inertia", "kg m^2")),
+                                     start=len(f.coefficients)):
         val = getattr(f, name)
         extra = ""
         if base is not None:
             b = base.drag_area if name == "drag_area" else getattr(base, name)
             extra = f"   (base {b:.4g})"
-        lines.append(f"  {name:<22}{val: .4g} {unit}{extra}")
+        lines.append(f"  {name:<22}{val: .4g}{spread(k)} {unit}{extra}")
     if f.on_grid_edge:
         lines.append(f"  WARNING: at the edge of the Table 5 grid: {', '.join(f.on_grid_edge)}")
     return "\n".join(lines)

@@ -39,7 +39,7 @@ import math
 from typing import Sequence
 
 import numpy as np
-from scipy.signal import find_peaks
+from scipy.signal import find_peaks, lfilter
 
 RPM_PER_RAD_S = 30.0 / math.pi
 
@@ -229,6 +229,10 @@ class TorqueModelFit:
     #: coefficients' covariance, widened by the residuals' correlation between consecutive
     #: samples): how well the map is known, a scale error that every drive on it shares [-]
     relative_std: float = math.nan
+    #: Joint covariance of [w0..wn, C_a, C_r, I_e, I_w], row by row (:func:`joint_covariance`):
+    #: the map and the vehicle values trade against each other (w0 against C_r, C_a against C_r),
+    #: so what a drive at other speeds and loads inherits is known only from all of it together
+    covariance: tuple[float, ...] = ()
 
     def parameters(self) -> dict[str, float]:
         return {name: float(getattr(self, name)) for name in GRID_PARAMETERS}
@@ -276,7 +280,43 @@ def grid_search(X: np.ndarray, b0: np.ndarray, B: np.ndarray,
         wheel_inertia=float(th[4]), coefficients=tuple(float(x) for x in w),
         r2=1.0 - ss_res / ss_tot if ss_tot > 0.0 else float("nan"),
         rmse=math.sqrt(ss_res / n), n_samples=int(n), on_grid_edge=edge,
-        relative_std=map_relative_std(X / scale, w_scaled, residual))
+        relative_std=map_relative_std(X / scale, w_scaled, residual),
+        covariance=tuple(float(c) for c in joint_covariance(
+            X, B, residual, [spec[name][2] for name in GRID_PARAMETERS]).ravel()))
+
+
+def _lag1_correlation(residual: np.ndarray) -> float:
+    """Lag-1 correlation of a residual sequence in time order, clipped to [0, 0.99]."""
+    lagged = float(residual[:-1] @ residual[:-1])
+    rho = float(residual[1:] @ residual[:-1]) / lagged if lagged > 0.0 else 0.0
+    return min(max(rho, 0.0), 0.99)
+
+
+def joint_covariance(X: np.ndarray, B: np.ndarray, residual: np.ndarray, steps: Sequence[float]) -> np.ndarray:
+    """Covariance of [w (Eq. 49, X's units), C_a, C_r, I_e, I_w] of the fit T_e = b0 + B theta =
+    X w (Eq. 48 is linear in all of them: b0 = [X, -B] [w, theta]), with Z = [X, -B] and the
+    fit's residuals (rows in time order) taken as an AR(1) sequence of variance s^2 and lag-1
+    correlation rho: the sandwich ``(Z^T Z)^-1 Z^T Omega Z (Z^T Z)^-1``, Omega_ij = s^2
+    rho^|i-j|. A column that changes slowly (the speed's drag, the map's offset) is known
+    (1 + rho) / (1 - rho) times less well than white residuals would say, one that changes from
+    window to window (the acceleration's inertias) hardly less. Plus the grid's own rounding,
+    step^2 / 12, on each vehicle value (``steps``, Table 5's)."""
+    Z = np.column_stack([np.asarray(X, dtype=float), -np.asarray(B, dtype=float)])
+    n, k = Z.shape
+    if n <= k:
+        return np.full((k, k), math.nan)
+    scale = np.maximum(np.max(np.abs(Z), axis=0), 1e-12)
+    Zs = Z / scale
+    rho = _lag1_correlation(residual)
+    s2 = float(residual @ residual) / (n - k)
+    # sum_j rho^|i-j| z_j = forward + backward exponential sums - z_i
+    forward = lfilter([1.0], [1.0, -rho], Zs, axis=0)
+    backward = lfilter([1.0], [1.0, -rho], Zs[::-1], axis=0)[::-1]
+    middle = s2 * Zs.T @ (forward + backward - Zs)
+    bread = np.linalg.pinv(Zs.T @ Zs)
+    covariance = bread @ middle @ bread / np.outer(scale, scale)
+    covariance[-len(steps):, -len(steps):] += np.diag([step * step / 12.0 for step in steps])
+    return 0.5 * (covariance + covariance.T)
 
 
 def map_relative_std(X: np.ndarray, w: np.ndarray, residual: np.ndarray) -> float:
@@ -290,9 +330,7 @@ def map_relative_std(X: np.ndarray, w: np.ndarray, residual: np.ndarray) -> floa
     if n <= k:
         return math.nan
     s2 = float(residual @ residual) / (n - k)
-    lagged = float(residual[:-1] @ residual[:-1])
-    rho = float(residual[1:] @ residual[:-1]) / lagged if lagged > 0.0 else 0.0
-    rho = min(max(rho, 0.0), 0.99)
+    rho = _lag1_correlation(residual)
     covariance = s2 * (1.0 + rho) / (1.0 - rho) * np.linalg.pinv(X.T @ X)
     x_mean = X.mean(axis=0)
     torque = float(x_mean @ w)

@@ -14,6 +14,8 @@ import dataclasses
 import math
 from typing import Any, Mapping
 
+import numpy as np
+
 from vehicle_estimation.contract.settings import check_settings, setting
 from vehicle_estimation.contract.vehicle import VehicleParams
 from vehicle_estimation.estimators.common.guard import finite_number
@@ -207,6 +209,9 @@ class ForgettingMassEstimator:
         self._bias_t = math.nan      # stamp of the last accepted sample [s]
         self._noise_sum = 0.0        # sum_k lambda^(n-k) sigma_k^2 of phi's white noise [m^2/s^4]
         self._force_lever = 0.0      # sum_k lambda^(n-k) phi_k dy_k of a lasting force error [N m/s^2]
+        # sum_k lambda^(n-k) phi_k s_k of a calibration's parameter errors (s_k: the force's
+        # sensitivity to each parameter, lasting_force_covariance their covariance)
+        self._model_lever = np.zeros(0)
         # Correlation of consecutive a-priori residuals: weighted sums of e_k e_k-1 and e_k-1^2,
         # the last residual and its stamp, the pairs seen, their mean spacing [s].
         self._res_cross, self._res_lagged_sq = 0.0, 0.0
@@ -241,6 +246,7 @@ class ForgettingMassEstimator:
             "bias_spread": float(self._bias_spread),
             "noise_sum": float(self._noise_sum),
             "force_lever": float(self._force_lever),
+            **{f"model_lever_{i}": float(v) for i, v in enumerate(self._model_lever)},
             "residual_cross": float(self._res_cross),
             "residual_lagged_sq": float(self._res_lagged_sq),
             "residual_pairs": float(self._res_pairs),
@@ -271,6 +277,10 @@ class ForgettingMassEstimator:
         self._noise_sum = noise_sum if math.isfinite(noise_sum) and noise_sum >= 0.0 else 0.0
         force_lever = float(state.get("force_lever", 0.0))
         self._force_lever = force_lever if math.isfinite(force_lever) else 0.0
+        model_lever = [float(state[key]) for key in sorted(
+            (k for k in state if k.startswith("model_lever_")), key=lambda k: int(k.rsplit("_", 1)[1]))]
+        if model_lever and all(math.isfinite(v) for v in model_lever):
+            self._model_lever = np.asarray(model_lever)
         cross, lagged = float(state.get("residual_cross", 0.0)), float(state.get("residual_lagged_sq", 0.0))
         pairs = float(state.get("residual_pairs", 0.0))
         if math.isfinite(cross) and math.isfinite(lagged) and lagged >= 0.0 and math.isfinite(pairs) and pairs >= 0.0:
@@ -310,7 +320,19 @@ class ForgettingMassEstimator:
         show [kg^2]: the caller's lasting bias, the errors-in-variables bias of phi's white
         noise, and a force error that lasts (see :meth:`_accepted`)."""
         lever_sq = self._bias_spread + self._noise_sum ** 2
-        return (self.mass * self.rls.p) ** 2 * lever_sq + (self.rls.p * self._force_lever) ** 2
+        return ((self.mass * self.rls.p) ** 2 * lever_sq + (self.rls.p * self._force_lever) ** 2
+                + self.rls.p ** 2 * self._model_spread())
+
+    #: Covariance of the calibrated parameters whose force sensitivities :meth:`_accepted` gets
+    #: (``lasting_force_sensitivity``); None: none given. Set by the method (from its config).
+    lasting_force_covariance: np.ndarray | None = None
+
+    def _model_spread(self) -> float:
+        """L^T C L [N^2 m^2/s^4] of the calibrated parameters' errors (0 without a covariance)."""
+        cov, lever = self.lasting_force_covariance, self._model_lever
+        if cov is None or lever.size != cov.shape[0]:
+            return 0.0
+        return max(float(lever @ cov @ lever), 0.0)
 
     @property
     def residual_correlation(self) -> float:
@@ -441,7 +463,8 @@ class ForgettingMassEstimator:
 
     def _accepted(self, t: float, phi: float, y: float, residual_sq: float,
                   regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf,
-                  regressor_noise_variance: float = 0.0, lasting_force_error: float = 0.0) -> bool:
+                  regressor_noise_variance: float = 0.0, lasting_force_error: float = 0.0,
+                  lasting_force_sensitivity: np.ndarray | None = None) -> bool:
         """Book-keeping after an RLS update at ``t`` with a-priori squared residual
         ``residual_sq``; ``regressor_bias_variance`` [m^2/s^4] and its correlation time
         ``regressor_bias_correlation_s`` [s] feed the lasting error's share of the variance.
@@ -451,10 +474,21 @@ class ForgettingMassEstimator:
         ``lasting_force_error`` [N]: the std of this sample's share of a force error that is the
         same fraction of the force on every sample (a calibrated torque map's scale: the caller
         gives the fraction's std times the force). Its mass error is p sum(lambda^(n-k) phi_k
-        dy_k), exactly, whatever the excitation; the residuals cannot show it either."""
+        dy_k), exactly, whatever the excitation; the residuals cannot show it either.
+        ``lasting_force_sensitivity`` [N per unit of each parameter]: the same for a calibration's
+        parameters with a joint covariance (:attr:`lasting_force_covariance`): the force error
+        is s_k^T d on every sample, the mass error p L^T d with L = sum lambda^(n-k) phi_k s_k."""
         lam = self.config.forgetting_factor
         force_error = lasting_force_error if finite_number(lasting_force_error) else 0.0
         self._force_lever = lam * self._force_lever + phi * max(force_error, 0.0)
+        if lasting_force_sensitivity is not None:
+            s_k = np.asarray(lasting_force_sensitivity, dtype=float)
+            if self._model_lever.shape != s_k.shape:
+                self._model_lever = np.zeros_like(s_k)
+            if np.all(np.isfinite(s_k)):
+                self._model_lever = lam * self._model_lever + phi * s_k
+        else:
+            self._model_lever = lam * self._model_lever
         noise = regressor_noise_variance if finite_number(regressor_noise_variance) else 0.0
         self._noise_sum = lam * self._noise_sum + max(noise, 0.0)
         self._res_weight = lam * self._res_weight + 1.0

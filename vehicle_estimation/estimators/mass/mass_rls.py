@@ -34,6 +34,8 @@ import dataclasses
 import math
 from typing import Any, Mapping, Sequence
 
+import numpy as np
+
 from vehicle_estimation.contract.settings import setting
 from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
 from vehicle_estimation.estimators.common.guard import finite_number
@@ -57,6 +59,9 @@ REJECT_REASONS = (
 )
 
 DRIVE_FORCE_KINDS = ("wheel", "propulsion", "tractive")
+#: The vehicle values a calibration fits beside Eq. (49)'s map (Table 5), in the order of
+#: ``torque_model_covariance`` (estimators/mass/calibration.py GRID_PARAMETERS).
+CALIBRATED_PARAMETERS = ("drag_area", "rolling_resistance", "engine_inertia", "wheel_inertia")
 
 
 @dataclasses.dataclass
@@ -91,6 +96,10 @@ class MassRLSConfig(ForgettingConfig):
         0.0, "Relative std of that map's torque where the calibration drive ran (calibrate writes it from "
         "the fit's coefficient covariance): a scale error of the propulsion force that lasts, which the "
         "mass variance carries [-]", low=0.0, high=1.0)
+    torque_model_covariance: list[float] = setting(
+        [], "Joint covariance of the calibration's fit, row by row: [w0..wn of Eq. (49), C_a, C_r, I_e, I_w] "
+        "((n + 5)^2 values; calibrate writes it): parameter errors that last, which the mass variance "
+        "carries (instead of torque_regression_relative_std)")
     torque_regression_speed_unit: str = setting("rpm", "Unit of N_e in Eq. (49) (rpm as Table 6, or rad/s)",
                                                 choices=("rpm", "rad/s"))
     # --- ambient wind (not in the paper, its Sec. 8 open problem): with wind_compensation the
@@ -140,6 +149,26 @@ class MassRLSConfig(ForgettingConfig):
         super().validate()
         if len(self.torque_regression or []) == 1:
             raise ValueError("torque_regression needs at least [w0, w1] (Eq. 49), got one coefficient")
+        if self.torque_model_covariance:
+            self.model_covariance()
+
+    def model_covariance(self) -> "np.ndarray | None":
+        """``torque_model_covariance`` as a matrix (None when not given); ``ValueError`` naming
+        the field when it does not fit the regression or is no covariance."""
+        values = list(self.torque_model_covariance or [])
+        if not values:
+            return None
+        n = len(self.torque_regression or []) + len(CALIBRATED_PARAMETERS)
+        if len(values) != n * n:
+            raise ValueError(f"torque_model_covariance needs {n * n} values ({n} x {n}: the "
+                             f"{len(self.torque_regression or [])} torque_regression coefficients and "
+                             f"{', '.join(CALIBRATED_PARAMETERS)}), got {len(values)}")
+        cov = np.asarray(values, dtype=float).reshape(n, n)
+        if not (np.all(np.isfinite(cov)) and np.allclose(cov, cov.T, rtol=1e-6, atol=0.0)
+                and np.all(np.diag(cov) >= 0.0)):
+            raise ValueError("torque_model_covariance must be a finite symmetric matrix with a "
+                             "non-negative diagonal")
+        return cov
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "MassRLSConfig":
@@ -239,6 +268,7 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         config.validate()   # names a bad field before the regression is built from it
         self.regression = EngineTorqueRegression.from_coefficients(
             config.torque_regression, config.torque_regression_speed_unit)
+        self.lasting_force_covariance = config.model_covariance()
         super().__init__(params, config)
 
     def _reset_method_state(self) -> None:
@@ -381,7 +411,8 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
                 return self._reject("propulsion")
             force = self.regression.torque(float(engine_load), float(engine_speed)) * G      # Eq. (49), eta = 1
             inertia = wheel_inertia + p.engine_inertia * G * G
-            force_error = cfg.torque_regression_relative_std * abs(force)
+            if self.lasting_force_covariance is None:
+                force_error = cfg.torque_regression_relative_std * abs(force)
         if not force > cfg.min_propulsion_force:
             return self._reject("propulsion")
 
@@ -398,7 +429,24 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             return self._reject("phi")
         y = force - drag - inertia * ax                                          # Eq. (6)
 
+        sensitivity = None
+        if have_reg and not (have_drive or have_torque) and self.lasting_force_covariance is not None:
+            sensitivity = self._calibration_sensitivity(float(engine_load), float(engine_speed), G, vx, ax, g_normal)
         self.rls.update(phi, y)                                                   # Eqs. (7)-(9)
         return self._accepted(t, phi, y, self.rls.last_residual ** 2, regressor_bias_variance,
                               regressor_bias_correlation_s, regressor_noise_variance=accel_noise_variance,
-                              lasting_force_error=force_error)
+                              lasting_force_error=force_error, lasting_force_sensitivity=sensitivity)
+
+    def _calibration_sensitivity(self, load: float, engine_speed: float, G: float, vx: float, ax: float,
+                                 g_normal: float) -> np.ndarray:
+        """How the residual y - m phi of Eq. (6) moves per unit error of each calibrated value
+        (``torque_model_covariance``'s order) [N per unit]: the map's G x (Eq. 49's features),
+        the drag -1/2 rho v^2, the rolling resistance -m g cos(theta), the inertias -G^2 a and
+        -a / r^2; the calibration's own Z row (calibration.dynamics_torque_basis) times G."""
+        assert self.regression is not None
+        p = self.params
+        n = engine_speed * (RPM_PER_RAD_S if self.regression.speed_unit == "rpm" else 1.0)
+        features = [1.0, load] + [n ** k for k in range(1, len(self.regression.coefficients) - 1)]
+        return np.array([G * f for f in features]
+                        + [-0.5 * p.air_density * vx * vx, -self.rls.theta * g_normal,
+                           -G * G * ax, -ax / p.wheel_radius ** 2])
