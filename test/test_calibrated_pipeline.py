@@ -103,6 +103,9 @@ def test_the_rls_node_takes_the_fitted_torque_map(calibrated):
     try:
         node = MassNode(context=context)
         assert node.method == "rls" and len(node.config.torque_regression) == 4
+        # the fit's joint covariance (map and vehicle values) reaches the core's variance
+        assert node.core.lasting_force_covariance is not None
+        assert node.core.lasting_force_covariance.shape == (8, 8)
         node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
