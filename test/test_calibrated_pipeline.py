@@ -139,3 +139,29 @@ def test_every_written_vehicle_file_layers_over_every_shipped_file(tmp_path):
                     _start_every_node(files)
                 except ParameterError as exc:
                     pytest.fail(f"{[f.name for f in files]}: {exc}")
+
+
+def test_inspect_says_whether_the_calibration_s_error_is_in_the_mass_variance(calibrated, tmp_path):
+    """The calibrated file carries its fit's joint covariance; a file written before that
+    (only the map) or a hand-written map is named as such, with what to do."""
+    import yaml
+
+    from vehicle_estimation.io.inspect_bag import summarize
+
+    out, _ = calibrated
+    bag = out.parent / "training_drive"
+    estimation = PARAMS_DIR / "estimation.yaml"
+
+    def mass_text(files):
+        return "\n".join(summarize(bag, files, {})["nodes"]["mass"]["lines"])
+
+    assert "mass.torque_model_covariance) is in the mass variance" in mass_text([out, estimation])
+    doc = yaml.safe_load(out.read_text(encoding="utf-8"))
+    section = doc["mass"]["ros__parameters"]["mass"]
+    section.pop("torque_model_covariance")
+    older = tmp_path / "older.yaml"
+    older.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert "no mass.torque_model_covariance: run calibrate again" in mass_text([older, estimation])
+    section.pop("torque_regression_relative_std")
+    older.write_text(yaml.safe_dump(doc), encoding="utf-8")
+    assert "the map is taken as exact in the mass variance" in mass_text([older, estimation])

@@ -269,6 +269,14 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
         elif method == "rls" and load and engine_speed and regression:
             force = "torque_regression"
             lines.append("propulsion force from engine_load + engine speed through mass.torque_regression")
+            if ms.get("mass.torque_model_covariance"):
+                lines.append("the calibration's own error (mass.torque_model_covariance) is in the mass variance")
+            elif float(ms.get("mass.torque_regression_relative_std") or 0.0) > 0.0:
+                lines.append("the map's own error is in the mass variance, not its fitted vehicle values' "
+                             "(no mass.torque_model_covariance: run calibrate again to write it)")
+            else:
+                lines.append("the map is taken as exact in the mass variance (no calibration error "
+                             "given: run calibrate again to write it)")
         else:
             hint = ""
             if load and engine_speed and not regression:
