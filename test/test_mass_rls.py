@@ -182,6 +182,11 @@ def test_a_calibrated_map_s_scale_error_is_in_the_variance():
     state = LongitudinalMassEstimator(AUDI, cfg)
     state.load_state_dict(est.state_dict())
     assert state.variance == pytest.approx(est.variance)
+    # a state persisted when the map's scale had a lever of its own ("force_lever")
+    older = {key: value for key, value in est.state_dict().items() if not key.startswith("model_lever_")}
+    older["force_lever"] = est.state_dict()["model_lever_0"]
+    state.load_state_dict(older)
+    assert state.variance == pytest.approx(est.variance)
 
 
 def test_a_calibrated_drag_area_s_error_is_in_the_variance():

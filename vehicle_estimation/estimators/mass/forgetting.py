@@ -167,10 +167,11 @@ class ForgettingMassEstimator:
     to 200 s is 15-19 times the white figure (AR(1) with 0.9: 19); taken as white, 81 % of the
     errors over its 22 drives lay within 2 sigma (NEES 2.1, 3 % of the flagged beyond 3 sigma).
 
-    A calibrated torque map's own error (``lasting_force_error`` of :meth:`_accepted`) is one
-    scale on every sample of every drive: its mass error p sum(lambda^(n-k) phi_k dy_k) is
-    exact, and enters the variance beside the regressor's (:attr:`bias_variance`). Paper 003's
-    quick campaign (15-minute calibration, map known to 1.2 %): 61 % -> 85 % within 2 sigma.
+    A calibration's own error (``lasting_force_sensitivity`` of :meth:`_accepted`) is the same
+    on every sample of every drive: its mass error p sum(lambda^(n-k) phi_k dy_k) is exact, and
+    enters the variance beside the regressor's (:attr:`bias_variance`). Paper 003's quick
+    campaign (15-minute calibration): 61 % -> 85 % within 2 sigma with the map's scale alone,
+    96 % with the fit's joint covariance.
     """
 
     REJECT_REASONS: tuple[str, ...] = ()
@@ -208,9 +209,8 @@ class ForgettingMassEstimator:
         self._bias_spread = 0.0      # V of the class docstring [m^2/s^4]
         self._bias_t = math.nan      # stamp of the last accepted sample [s]
         self._noise_sum = 0.0        # sum_k lambda^(n-k) sigma_k^2 of phi's white noise [m^2/s^4]
-        self._force_lever = 0.0      # sum_k lambda^(n-k) phi_k dy_k of a lasting force error [N m/s^2]
-        # sum_k lambda^(n-k) phi_k s_k of a calibration's parameter errors (s_k: the force's
-        # sensitivity to each parameter, lasting_force_covariance their covariance)
+        # sum_k lambda^(n-k) phi_k s_k of a calibration's lasting errors (s_k: the force's
+        # sensitivity to each parameter, lasting_force_covariance their covariance) [N m/s^2]
         self._model_lever = np.zeros(0)
         # Correlation of consecutive a-priori residuals: weighted sums of e_k e_k-1 and e_k-1^2,
         # the last residual and its stamp, the pairs seen, their mean spacing [s].
@@ -245,7 +245,6 @@ class ForgettingMassEstimator:
             "bias_lever": float(self._bias_lever),
             "bias_spread": float(self._bias_spread),
             "noise_sum": float(self._noise_sum),
-            "force_lever": float(self._force_lever),
             **{f"model_lever_{i}": float(v) for i, v in enumerate(self._model_lever)},
             "residual_cross": float(self._res_cross),
             "residual_lagged_sq": float(self._res_lagged_sq),
@@ -275,10 +274,10 @@ class ForgettingMassEstimator:
         self._bias_spread = spread if math.isfinite(spread) and spread >= 0.0 else self._bias_lever ** 2
         noise_sum = float(state.get("noise_sum", 0.0))
         self._noise_sum = noise_sum if math.isfinite(noise_sum) and noise_sum >= 0.0 else 0.0
-        force_lever = float(state.get("force_lever", 0.0))
-        self._force_lever = force_lever if math.isfinite(force_lever) else 0.0
         model_lever = [float(state[key]) for key in sorted(
             (k for k in state if k.startswith("model_lever_")), key=lambda k: int(k.rsplit("_", 1)[1]))]
+        if not model_lever and "force_lever" in state:
+            model_lever = [float(state["force_lever"])]   # files of the map's scale alone (2026-12-05)
         if model_lever and all(math.isfinite(v) for v in model_lever):
             self._model_lever = np.asarray(model_lever)
         cross, lagged = float(state.get("residual_cross", 0.0)), float(state.get("residual_lagged_sq", 0.0))
@@ -320,8 +319,7 @@ class ForgettingMassEstimator:
         show [kg^2]: the caller's lasting bias, the errors-in-variables bias of phi's white
         noise, and a force error that lasts (see :meth:`_accepted`)."""
         lever_sq = self._bias_spread + self._noise_sum ** 2
-        return ((self.mass * self.rls.p) ** 2 * lever_sq + (self.rls.p * self._force_lever) ** 2
-                + self.rls.p ** 2 * self._model_spread())
+        return (self.mass * self.rls.p) ** 2 * lever_sq + self.rls.p ** 2 * self._model_spread()
 
     #: Covariance of the calibrated parameters whose force sensitivities :meth:`_accepted` gets
     #: (``lasting_force_sensitivity``); None: none given. Set by the method (from its config).
@@ -463,7 +461,7 @@ class ForgettingMassEstimator:
 
     def _accepted(self, t: float, phi: float, y: float, residual_sq: float,
                   regressor_bias_variance: float = 0.0, regressor_bias_correlation_s: float = math.inf,
-                  regressor_noise_variance: float = 0.0, lasting_force_error: float = 0.0,
+                  regressor_noise_variance: float = 0.0,
                   lasting_force_sensitivity: np.ndarray | None = None) -> bool:
         """Book-keeping after an RLS update at ``t`` with a-priori squared residual
         ``residual_sq``; ``regressor_bias_variance`` [m^2/s^4] and its correlation time
@@ -471,16 +469,12 @@ class ForgettingMassEstimator:
         ``regressor_noise_variance`` [m^2/s^4]: phi's white noise on this sample (the
         acceleration's), which biases least squares towards zero by m p sum(lambda^k sigma_k^2)
         (errors-in-variables): that bias, which the residuals cannot show, enters the variance.
-        ``lasting_force_error`` [N]: the std of this sample's share of a force error that is the
-        same fraction of the force on every sample (a calibrated torque map's scale: the caller
-        gives the fraction's std times the force). Its mass error is p sum(lambda^(n-k) phi_k
-        dy_k), exactly, whatever the excitation; the residuals cannot show it either.
-        ``lasting_force_sensitivity`` [N per unit of each parameter]: the same for a calibration's
-        parameters with a joint covariance (:attr:`lasting_force_covariance`): the force error
-        is s_k^T d on every sample, the mass error p L^T d with L = sum lambda^(n-k) phi_k s_k."""
+        ``lasting_force_sensitivity`` [N per unit of each parameter]: how this sample's force
+        moves with the errors d of parameters that are the same on every sample (a calibration's,
+        with the covariance :attr:`lasting_force_covariance`; a torque map's scale alone is one
+        parameter). The force error is s_k^T d, the mass error p L^T d with L = sum
+        lambda^(n-k) phi_k s_k, exactly, whatever the excitation; the residuals cannot show it."""
         lam = self.config.forgetting_factor
-        force_error = lasting_force_error if finite_number(lasting_force_error) else 0.0
-        self._force_lever = lam * self._force_lever + phi * max(force_error, 0.0)
         if lasting_force_sensitivity is not None:
             s_k = np.asarray(lasting_force_sensitivity, dtype=float)
             if self._model_lever.shape != s_k.shape:

@@ -39,6 +39,7 @@ import numpy as np
 from vehicle_estimation.contract.settings import setting
 from vehicle_estimation.contract.vehicle import VehicleParams, dataclass_from_mapping
 from vehicle_estimation.estimators.common.guard import finite_number
+from vehicle_estimation.estimators.mass.calibration import GRID_PARAMETERS
 from vehicle_estimation.estimators.mass.forgetting import ForgettingConfig, ForgettingMassEstimator
 from vehicle_estimation.estimators.mass.wind import WindEstimator, WindEstimatorConfig
 
@@ -59,9 +60,6 @@ REJECT_REASONS = (
 )
 
 DRIVE_FORCE_KINDS = ("wheel", "propulsion", "tractive")
-#: The vehicle values a calibration fits beside Eq. (49)'s map (Table 5), in the order of
-#: ``torque_model_covariance`` (estimators/mass/calibration.py GRID_PARAMETERS).
-CALIBRATED_PARAMETERS = ("drag_area", "rolling_resistance", "engine_inertia", "wheel_inertia")
 
 
 @dataclasses.dataclass
@@ -158,11 +156,11 @@ class MassRLSConfig(ForgettingConfig):
         values = list(self.torque_model_covariance or [])
         if not values:
             return None
-        n = len(self.torque_regression or []) + len(CALIBRATED_PARAMETERS)
+        n = len(self.torque_regression or []) + len(GRID_PARAMETERS)
         if len(values) != n * n:
             raise ValueError(f"torque_model_covariance needs {n * n} values ({n} x {n}: the "
                              f"{len(self.torque_regression or [])} torque_regression coefficients and "
-                             f"{', '.join(CALIBRATED_PARAMETERS)}), got {len(values)}")
+                             f"{', '.join(GRID_PARAMETERS)}), got {len(values)}")
         cov = np.asarray(values, dtype=float).reshape(n, n)
         if not (np.all(np.isfinite(cov)) and np.allclose(cov, cov.T, rtol=1e-6, atol=0.0)
                 and np.all(np.diag(cov) >= 0.0)):
@@ -239,16 +237,15 @@ class EngineTorqueRegression:
             return None
         return cls(coefficients, speed_unit)
 
+    def features(self, load: float, engine_speed: float) -> list[float]:
+        """The Eq.-(49) terms the coefficients multiply, [1, L, N_e, N_e^2, ...], N_e in the
+        coefficients' unit, for ``engine_speed`` [rad/s]."""
+        n = float(engine_speed) * (RPM_PER_RAD_S if self.speed_unit == "rpm" else 1.0)
+        return [1.0, float(load)] + [n ** k for k in range(1, len(self.coefficients) - 1)]
+
     def torque(self, load: float, engine_speed: float) -> float:
         """T_load [N m] for load ``load`` and engine speed ``engine_speed`` [rad/s]."""
-        n = float(engine_speed) * (RPM_PER_RAD_S if self.speed_unit == "rpm" else 1.0)
-        w = self.coefficients
-        total = w[0] + w[1] * float(load)
-        power = 1.0
-        for wk in w[2:]:
-            total += wk * power * n
-            power *= n
-        return total
+        return sum(w * f for w, f in zip(self.coefficients, self.features(load, engine_speed)))
 
 
 class LongitudinalMassEstimator(ForgettingMassEstimator):
@@ -268,7 +265,12 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         config.validate()   # names a bad field before the regression is built from it
         self.regression = EngineTorqueRegression.from_coefficients(
             config.torque_regression, config.torque_regression_speed_unit)
-        self.lasting_force_covariance = config.model_covariance()
+        # The calibration's lasting force error: its joint covariance, else the map's scale
+        # alone (one parameter, in units of its std: sensitivity std |F|, covariance 1).
+        covariance = config.model_covariance()
+        if covariance is None and config.torque_regression_relative_std > 0.0:
+            covariance = np.ones((1, 1))
+        self.lasting_force_covariance = covariance
         super().__init__(params, config)
 
     def _reset_method_state(self) -> None:
@@ -390,7 +392,6 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
             return self._reject("gear_shift")
 
         wheel_inertia = p.wheel_inertia / p.wheel_radius ** 2
-        force_error = 0.0
         if have_drive:
             force = float(drive_force)
             if cfg.drive_force_kind == "wheel":
@@ -411,8 +412,6 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
                 return self._reject("propulsion")
             force = self.regression.torque(float(engine_load), float(engine_speed)) * G      # Eq. (49), eta = 1
             inertia = wheel_inertia + p.engine_inertia * G * G
-            if self.lasting_force_covariance is None:
-                force_error = cfg.torque_regression_relative_std * abs(force)
         if not force > cfg.min_propulsion_force:
             return self._reject("propulsion")
 
@@ -431,11 +430,13 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
 
         sensitivity = None
         if have_reg and not (have_drive or have_torque) and self.lasting_force_covariance is not None:
-            sensitivity = self._calibration_sensitivity(float(engine_load), float(engine_speed), G, vx, ax, g_normal)
+            sensitivity = (self._calibration_sensitivity(float(engine_load), float(engine_speed), G, vx, ax, g_normal)
+                           if self.lasting_force_covariance.shape[0] > 1
+                           else np.array([cfg.torque_regression_relative_std * abs(force)]))
         self.rls.update(phi, y)                                                   # Eqs. (7)-(9)
         return self._accepted(t, phi, y, self.rls.last_residual ** 2, regressor_bias_variance,
                               regressor_bias_correlation_s, regressor_noise_variance=accel_noise_variance,
-                              lasting_force_error=force_error, lasting_force_sensitivity=sensitivity)
+                              lasting_force_sensitivity=sensitivity)
 
     def _calibration_sensitivity(self, load: float, engine_speed: float, G: float, vx: float, ax: float,
                                  g_normal: float) -> np.ndarray:
@@ -445,8 +446,6 @@ class LongitudinalMassEstimator(ForgettingMassEstimator):
         -a / r^2; the calibration's own Z row (calibration.dynamics_torque_basis) times G."""
         assert self.regression is not None
         p = self.params
-        n = engine_speed * (RPM_PER_RAD_S if self.regression.speed_unit == "rpm" else 1.0)
-        features = [1.0, load] + [n ** k for k in range(1, len(self.regression.coefficients) - 1)]
-        return np.array([G * f for f in features]
+        return np.array([G * f for f in self.regression.features(load, engine_speed)]
                         + [-0.5 * p.air_density * vx * vx, -self.rls.theta * g_normal,
                            -G * G * ax, -ax / p.wheel_radius ** 2])

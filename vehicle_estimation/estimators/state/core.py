@@ -65,8 +65,9 @@ class CorneringSpeed:
     ``min_yaw_rate`` the ratio says nothing: no measurement.
 
     Feed every filter step's (roll-compensated) lateral acceleration and yaw rate to
-    :meth:`add`; at the end of each window it returns ``(v_x, variance)``, or None while the
-    window fills, where the car turns too little, or when the value is not finite.
+    :meth:`step` (:meth:`add` once nothing else measures vx); at the end of each window it
+    returns ``(v_x, variance)``, or None while the window fills, where the car turns too
+    little, or when the value is not finite.
     """
 
     accel_std: float = DEFAULT_CORNERING_ACCEL_STD        # the window's v_y' and unmodelled a_y [m/s^2]
