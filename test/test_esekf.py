@@ -605,3 +605,42 @@ def test_gnss_makes_the_bias_observable_and_drops_the_unaided_prior(drive):
     running = out["running"]
     # shortly after the heading is fixed the GNSS-aided grade is tighter than the unaided prior
     assert np.nanmin(out["grade_var"][running]) < (cfg.unaided_accel_bias_sigma / G) ** 2
+
+
+def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), **cfg):
+    """A filter aligned on level ground whose IMU sits ``pitch`` nose-up in the body (the nominal
+    mounting says level), pulled away at 0.5 m/s^2 to ``top_speed`` on a level road, without
+    GNSS: the vertical constraint sees the body velocity times the mounting error."""
+    ekf = FusionEKF(FusionConfig(nh_sigma_z=0.1, estimate_mounting=True, **cfg))
+    f_level, w = _static_imu(grade=pitch)
+    t = 0.0
+    for i in range(250):
+        t = i * 0.005
+        ekf.update_speed(t, 0.0)
+        ekf.process_imu(t, f_level, w)
+    for i in range(1, int(seconds / 0.005) + 1):
+        t_i = t + i * 0.005
+        accel = 0.5 if 0.5 * i * 0.005 < top_speed else 0.0
+        speed = min(top_speed, 0.5 * i * 0.005)
+        f = f_level + quat_to_rotmat(quat_from_euler(0.0, -pitch, 0.0)).T @ np.array([accel, 0.0, 0.0])
+        ekf.process_imu(t_i, f, w)
+        if i % 2 == 0:
+            ekf.update_speed(t_i, speed)
+    return ekf
+
+
+def test_without_gnss_a_crawl_does_not_move_the_mounting():
+    """Below ``mounting_min_speed_without_gnss`` the constraints carry no mounting columns: a
+    crawl leaves the mounting where the alignment put it (its errors go to the attitude, which
+    GNSS or faster driving corrects later); from that speed up the mounting is learnt."""
+    crawl = _pull_away(0.8)
+    assert not crawl.gnss_aided and not crawl.mounting_observed()
+    np.testing.assert_array_equal(crawl.mounting_rpy, 0.0)
+    ungated = _pull_away(0.8, mounting_min_speed_without_gnss=0.0)
+    assert ungated.mounting_observed()
+    assert abs(math.degrees(ungated.mounting_rpy[1])) > 0.01          # without the gate it moves
+    driving = _pull_away(3.0)
+    assert driving.mounting_observed()
+    assert abs(math.degrees(driving.mounting_rpy[1])) > 0.01
+    # what the crawl did not learn stays in the mounting's variance
+    assert crawl.mounting_covariance[0, 0] == pytest.approx(crawl.config.p0_mounting_sigma ** 2)

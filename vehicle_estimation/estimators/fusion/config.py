@@ -57,6 +57,13 @@ class FusionConfig:
     from -2 to +2 mrad/s). ``hold_yaw_rate_bias_without_gnss`` makes it a 'consider' state while
     no fix aids (a Schmidt update: its gain is zero, its covariance and cross-covariances are
     kept, Joseph form), corrected by GNSS.
+
+    The IMU mounting (``estimate_mounting``) enters the body-velocity constraints as the
+    velocity times its angle. Without GNSS it is refined there only from
+    ``mounting_min_speed_without_gnss`` up (:meth:`FusionEKF.mounting_observed`): pulling away,
+    the product is smaller than what the constraints' model misses (the body pitching under the
+    first acceleration, the CAN speed's quantisation), and no fix takes back what the mounting
+    learnt from it.
     """
 
     gravity: float = setting(GRAVITY, "Gravitational acceleration [m/s^2] (paper uses 9.81, Eq. (27))",
@@ -159,6 +166,8 @@ class FusionConfig:
                                               "misplaces when p0 holds the prior [m/s^2]", low=0.0)
     hold_yaw_rate_bias_without_gnss: bool = setting(True, "Hold the z gyro bias while no GNSS fix aids (a "
                                                     "consider state)")
+    mounting_min_speed_without_gnss: float = setting(1.0, "Without GNSS the vehicle constraints refine the "
+                                                     "mounting only from this speed up [m/s]", low=0.0)
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""

@@ -48,7 +48,7 @@ class FusionOutputs:
     _t_gnss: float | None
     _t_gnss_applied: float | None
     _speed_variance: float | None
-    _body_speed_rows: Callable[[list[int]], tuple]
+    _body_speed_rows: Callable[..., tuple]
 
     position_enu = _copy_of("_p", "Position in the ENU frame [m].")
     velocity_enu = _copy_of("_v", "Velocity in the ENU frame [m/s].")
@@ -125,7 +125,7 @@ class FusionOutputs:
         variance is not published below the speed's own stated variance. (The filter weighs that
         speed as correlated over ``speed_error_correlation_s`` and computed 0.045 m/s on FASTSim's
         car without GNSS, where a 1 km/h step leaves 0.07 m/s: NEES 2.5.)"""
-        _, H = self._body_speed_rows([0, 1, 2])
+        _, H = self._body_speed_rows([0, 1, 2], self.config.estimate_mounting)
         cov = H @ self._P @ H.T
         if self._speed_variance is not None and not self.gnss_aided and cov[0, 0] < self._speed_variance:
             cov[0, 0] = self._speed_variance
