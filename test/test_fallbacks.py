@@ -85,6 +85,18 @@ def _read(bag: Path) -> tuple[dict[str, int], dict[str, dict[str, str]], dict[st
     return counts, diagnostics, {k: np.array(v) for k, v in series.items()}
 
 
+def _diagnostic_values(bag: Path, node: str, key: str) -> list[str]:
+    """Every value ``node``'s /diagnostics gave ``key`` in the drive, in order."""
+    values = []
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
+        for conn, _, data in reader.messages(connections=conns):
+            for status in reader.deserialize(data, conn.msgtype).status:
+                if status.name.split("/")[-1] == node:
+                    values += [kv.value for kv in status.values if kv.key == key]
+    return values
+
+
 def test_every_estimate_is_published_without_gnss_and_wheel_speeds(replayed):
     counts, _, _ = _read(replayed)
     for topic in ESTIMATES:
@@ -99,6 +111,10 @@ def test_diagnostics_name_each_fallback(replayed):
     # Without GNSS the fusion's grade is the kinematic one with the accelerometer bias held at
     # its prior, converged within the prior's variance: the slope node keeps it.
     assert diagnostics["fusion"]["accel bias estimation"].startswith("held at its prior")
+    # ... and the mounting is refined by the constraints while the car drives, not at standstill.
+    mounting = _diagnostic_values(replayed, "fusion", "IMU mounting estimation")
+    assert set(mounting) == {"refined by the vehicle constraints (no GNSS)", "held below 1 m/s without GNSS"}
+    assert mounting[-1] == "held below 1 m/s without GNSS"          # the drive ends at rest
     assert diagnostics["road_slope"]["slope source"].startswith("fusion_pitch")
     assert diagnostics["vehicle_state"]["vx source"].startswith("vehicle/speed")
 

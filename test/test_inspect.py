@@ -137,6 +137,7 @@ def test_no_gnss_dead_reckons(bags):
     text = _node_text(summary, "fusion")
     assert "no GNSS: dead reckoning, odom = start pose with a free heading; position covariance grows" in text
     assert "accelerometer bias held at its prior" in text
+    assert "IMU mounting learnt only from 1 m/s up" in text
     assert "gnss/fix: MISSING" in format_summary(summary)
 
 

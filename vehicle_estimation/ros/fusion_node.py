@@ -262,6 +262,11 @@ class FusionNode(EstimatorNode):
                 "gyro bias [rad/s]": np.array2string(ekf.gyro_bias, precision=6),
                 "IMU mounting rpy [deg]": np.array2string(np.degrees(ekf.mounting_rpy), precision=3),
             })
+            if ekf.config.estimate_mounting:
+                values["IMU mounting estimation"] = (
+                    "GNSS-aided" if ekf.gnss_aided
+                    else "refined by the vehicle constraints (no GNSS)" if ekf.mounting_observed()
+                    else f"held below {ekf.config.mounting_min_speed_without_gnss:g} m/s without GNSS")
         for k, v in getattr(ekf, "rejected", {}).items():
             values[f"filter rejected {k}"] = str(v)
         for k, v in getattr(ekf, "events", {}).items():     # imu_gap, align_restart, ...
