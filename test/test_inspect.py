@@ -159,6 +159,12 @@ def test_state_falls_back_to_vehicle_speed_without_wheel_speeds(bags, tmp_path):
     assert "vx from vehicle/speed" in _node_text(summarize(bags["no_wheels"], _files(off, on), {}),
                                                  "vehicle_state")
     assert "vx from the wheel speeds" in _node_text(summarize(bags["full"], _files(off), {}), "vehicle_state")
+    # paper 002's AO-UKF takes vx as a measurement: with no speed at all another filter runs
+    aoukf = tmp_path / "aoukf.yaml"
+    aoukf.write_text("vehicle_state:\n  ros__parameters:\n    filter: aoukf\n")
+    fallback = "aoukf needs a speed: filter vbackf runs instead (automatic fallback, no_speed_filter)"
+    assert fallback in _node_text(summarize(bags["no_wheels"], _files(off, aoukf), {}), "vehicle_state")
+    assert fallback not in _node_text(summarize(bags["no_wheels"], _files(on, aoukf), {}), "vehicle_state")
 
 
 def test_mass_without_propulsion_force(bags):

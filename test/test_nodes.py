@@ -240,6 +240,8 @@ def test_state_node_estimates_speed_from_wheels_and_imu(filter_name):
         assert all(math.isfinite(b.data) for b in beta)
         cov = np.array(state[-1].twist.covariance).reshape(6, 6)
         assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) >= -1e-12)
+        assert node.running_filter == filter_name           # wheel speeds: no fallback
+        assert node.status_values()["filter"] == filter_name
     finally:
         h.close()
 
@@ -345,6 +347,42 @@ def test_state_node_without_any_speed_measures_vx_in_corners(corners):
         else:
             assert node.core.speed_updates == 0
             assert node.vx_source.startswith("dead reckoning from ax (no wheel"), node.vx_source
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("fallback", ["vbackf", ""])
+def test_aoukf_without_any_speed_runs_the_no_speed_filter(fallback):
+    """paper 002's AO-UKF takes vx as a measurement; on a drive with no wheel speeds and no
+    vehicle/speed (the circle above) the node runs ``no_speed_filter`` instead and says so
+    (with '' the AO-UKF runs all the same)."""
+    vx_true, r_true = 20.0, 0.25
+    node = StateNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("filter", value="aoukf"), Parameter("no_speed_filter", value=fallback),
+        Parameter("initial_vx", value=vx_true)])
+    h = Harness(node)
+    try:
+        state, _ = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)])
+        p = node.vehicle
+        steering_wheel = p.steering_ratio * p.wheelbase * r_true / vx_true
+        stream = []
+        for i in range(2000):
+            ti = T0 + i * 0.005
+            if i % 2 == 0:
+                stream.append((topics.JOINT_STATES, steering_msg(ti, steering_wheel)))
+            stream.append((topics.IMU, imu_msg(ti, [0.0, vx_true * r_true, G], [0, 0, r_true])))
+        h.publish_stream(stream)
+        assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 9)
+        assert node.core.initialised
+        status = node.status_values()["filter"]
+        if fallback:
+            assert node.running_filter == "vbackf" and type(node.core).__name__ == "VehicleStateVBACKF"
+            assert status == "vbackf (instead of aoukf, which needs a speed: none at the start)"
+            assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.5)
+        else:
+            assert node.running_filter == "aoukf" and status == "aoukf"
+        node.reset_estimators()                             # a bag loop starts with the configured filter
+        assert node.running_filter == "aoukf" and type(node.core).__name__ == "VehicleStateAOUKF"
     finally:
         h.close()
 
@@ -519,6 +557,7 @@ def test_mass_node_ffrls_uses_braking_samples():
     ("mass_node", "method:=ta_aekf;ta_aekf.model_path:=/nonexistent/model", "ta_aekf.model_path"),
     ("state_node", "filter:=aoukf;aoukf.outlier_c:=-1.0", "outlier_c"),
     ("state_node", "filter:=aoukf;aoukf_correction:=/nonexistent/weights.npz", "aoukf_correction"),
+    ("state_node", "filter:=aoukf;no_speed_filter:=aoukf", "no_speed_filter"),
     ("slope_node", "method:=bogus", "method"),
     ("slope_node", "cubic_prediction.fit_min_points:=2", "cubic_prediction.fit_min_points"),
     ("state_node", "vehicle.mass:=-5.0", "vehicle.mass"),

@@ -178,9 +178,13 @@ class StateFilter(Method):
     :class:`~vehicle_estimation.estimators.interfaces.StateEstimator`. ``config`` is None for
     a filter without a config of its own (``config_type`` returns None); ``correction`` is
     the GA-BPNN output correction of paper 002 Eq. 5, for the filters with
-    ``output_correction`` (node parameter ``aoukf_correction``)."""
+    ``output_correction`` (node parameter ``aoukf_correction``). A filter that
+    ``needs_speed`` takes vx as a measurement (paper 002: [ay, r, vx]); without one its tyre
+    model alone pulls vx tens of m/s off (the real Stanford drive), so on a drive with no
+    speed of any kind the node runs another (node parameter ``no_speed_filter``)."""
 
     output_correction: bool = False
+    needs_speed: bool = False
 
 
 def with_state_settings(config: Any, settings: StateSettings) -> tuple[Any, tuple[str, ...]]:
@@ -236,7 +240,8 @@ STATE_FILTERS: dict[str, StateFilter] = {
                           lazy("state.vbackf:VBConfig"), _vbackf),
     "aoukf": StateFilter("aoukf", "paper 002: the adaptive anti-outlier UKF on the 3-DOF Magic-Formula "
                          "model (Sec. 3.3, Eqs. 6-7) with the GA-BPNN output correction (Eq. 5)",
-                         "aoukf", lazy("state.aoukf:AOUKFConfig"), _aoukf, output_correction=True),
+                         "aoukf", lazy("state.aoukf:AOUKFConfig"), _aoukf, output_correction=True,
+                         needs_speed=True),
 }
 
 

@@ -13,7 +13,10 @@ Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14, ``aoukf`` on the paper-002 3-D
   (``aoukf_correction``: ``auto`` loads the shipped weights for ``vehicle.name`` when the
   package has them, a path loads that file, empty turns it off). Its tuning: ``aoukf.*``
   (``aoukf.filter`` ``ukf`` / ``ekf`` gives the paper's contrasts). Gross errors (spikes,
-  bursts, a frozen sensor) are down-weighted or replaced; ``/diagnostics`` counts them.
+  bursts, a frozen sensor) are down-weighted or replaced; ``/diagnostics`` counts them. It
+  takes vx as a measurement: on a drive with no speed of any kind (no wheel speeds and no
+  ``vehicle/speed`` in the first second) the node runs ``no_speed_filter`` instead, and
+  ``/diagnostics`` (``filter``) says so.
 
 The filter is built from :data:`~vehicle_estimation.estimators.registry.STATE_FILTERS`; what it
 adds to ``/diagnostics`` comes from its ``status()``.
@@ -64,6 +67,7 @@ from vehicle_estimation.estimators.common.noise import white_equivalent_variance
 from vehicle_estimation.estimators.interfaces import StateEstimator
 from vehicle_estimation.estimators.registry import (
     STATE_FILTERS,
+    StateFilter,
     StateSettings,
     lookup,
     with_state_settings,
@@ -186,6 +190,19 @@ class StateNode(EstimatorNode):
                 "GA-BPNN output correction (paper 002 Eq. 5) for filter aoukf: 'auto' = the "
                 "package's weights for vehicle.name if it ships them (else none), a path = that "
                 ".npz file, '' = none"))
+        # Chosen before the filter's first step, once the first second shows no speed at all.
+        self.no_speed_filter = ""
+        if self.method.needs_speed:
+            self.no_speed_filter = self.declare_str(
+                "no_speed_filter", "vbackf",
+                f"Filter run instead of '{self.filter_name}' on a drive with no speed of any kind (no wheel "
+                "speeds, no vehicle/speed in its first second): that filter takes vx as a measurement, and "
+                "its tyre model alone pulls an unmeasured vx tens of m/s off; '' = run it all the same",
+                tuple(name for name, m in STATE_FILTERS.items() if not m.needs_speed) + ("",))
+        self.fallback_method = STATE_FILTERS[self.no_speed_filter] if self.no_speed_filter else None
+        self.fallback_config = (self._declare_filter_config(self.fallback_method)
+                                if self.fallback_method is not None else None)
+        self.running_filter = self.filter_name
         self.core = self._make_core()
         self.bias = FusionImuBias()
         self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
@@ -265,22 +282,39 @@ class StateNode(EstimatorNode):
         except ValueError as exc:
             raise ParameterError(f"parameter 'aoukf_correction': {exc}") from exc
 
-    def _declare_filter_config(self) -> Any:
-        """The filter's own config, declared as ``<config_prefix>.*`` (None for a filter
-        without one); the fields the node declares itself (initial_vx, ...) come from
-        :attr:`settings`."""
-        defaults = self.method.config_type()
+    def _declare_filter_config(self, method: StateFilter | None = None) -> Any:
+        """The filter's (or ``method``'s) own config, declared as ``<config_prefix>.*`` (None
+        for a filter without one); the fields the node declares itself (initial_vx, ...) come
+        from :attr:`settings`."""
+        method = method or self.method
+        defaults = method.config_type()
         if defaults is None:
             return None
         defaults, shared = with_state_settings(defaults, self.settings)
-        return self.declare_config(self.method.config_prefix, defaults, exclude=shared)
+        return self.declare_config(method.config_prefix, defaults, exclude=shared)
 
     def _make_core(self) -> StateEstimator:
+        """The configured filter; every core is checked at start-up (a bad config stops the node)."""
         correction = self.correction.fresh() if self.correction is not None else None
+        self.running_filter = self.filter_name
         try:
-            return self.method.build(self.vehicle, self.filter_config, self.settings, correction)
+            core = self.method.build(self.vehicle, self.filter_config, self.settings, correction)
+            if self.fallback_method is not None:
+                self.fallback_method.build(self.vehicle, self.fallback_config, self.settings, None)
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"filter '{self.filter_name}': {exc}") from exc
+        return core
+
+    def _fall_back_without_speed(self, wheels: np.ndarray) -> None:
+        """Before the first step: a filter that needs a speed, on a drive that has none, is
+        replaced by ``no_speed_filter`` (named in /diagnostics)."""
+        if (self.fallback_method is None or self.running_filter != self.filter_name or self.core.initialised
+                or np.isfinite(wheels[2:]).all() or math.isfinite(self.speed_t)):
+            return
+        self.core = self.fallback_method.build(self.vehicle, self.fallback_config, self.settings, None)
+        self.running_filter = self.no_speed_filter
+        self.note_event(f"no wheel speeds and no vehicle/speed: filter '{self.no_speed_filter}' runs instead "
+                        f"of '{self.filter_name}', which needs a speed (no_speed_filter)")
 
     def on_joint_states(self, t: float, msg: JointState) -> None:
         try:
@@ -368,13 +402,16 @@ class StateNode(EstimatorNode):
         if not math.isfinite(steer):
             steer = 0.0
         self._steer = steer
-        if not self.core.initialised and self.init_from_wheels and not np.isfinite(wheels).all():
+        if (not self.core.initialised and (self.init_from_wheels or self.fallback_method is not None)
+                and not np.isfinite(wheels).all()):
             # Starting from initial_vx while the car may be moving costs seconds of transient
-            # (and a wrong slope and mass downstream): wait up to WHEEL_WAIT_S for the wheels.
+            # (and a wrong slope and mass downstream): wait up to WHEEL_WAIT_S for the wheels
+            # (and for a speed, where the filter needs one).
             if self._first_imu_t is None:
                 self._first_imu_t = t
             if t - self._first_imu_t < WHEEL_WAIT_S:
                 return
+            self._fall_back_without_speed(wheels)
         # The filter steps at filter_rate_hz on the mean of the IMU samples since its last step:
         # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
         # measurement of the interval than any one sample.
@@ -489,7 +526,9 @@ class StateNode(EstimatorNode):
         extra["vx source"] = self.vx_source
         extra["roll compensation"] = self.roll_source
         extra["roll compensation sigma [m/s^2]"] = f"{math.sqrt(self._roll_ay_variance):.3f}"
-        return {**extra, "filter": self.filter_name, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
+        running = self.filter_name if self.running_filter == self.filter_name else (
+            f"{self.running_filter} (instead of {self.filter_name}, which needs a speed: none at the start)")
+        return {**extra, "filter": running, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 
 

@@ -88,7 +88,7 @@ class ParameterDeclarations:
 
     def declare_str(self, name: str, default: str, description: str,
                     choices: Sequence[str] | None = None) -> str:
-        extra = f"one of: {', '.join(choices)}" if choices else ""
+        extra = f"one of: {', '.join(c or repr(c) for c in choices)}" if choices else ""
         value = str(self._declare(name, default, descriptor(description, additional=extra)))
         if choices is not None and value not in choices:
             raise ParameterError(f"parameter '{name}' must be one of {list(choices)}, got '{value}'")
