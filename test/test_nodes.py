@@ -313,6 +313,19 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
         h.close()
 
 
+def _circle_without_speed(p, vx: float, r: float, seconds: float, ax_bias: float = 0.0) -> list:
+    """A steady circle at ``vx`` and yaw rate ``r``: 200 Hz IMU and the steering angle at
+    100 Hz, no wheel speeds, no vehicle/speed."""
+    steering_wheel = p.steering_ratio * p.wheelbase * r / vx
+    stream = []
+    for i in range(int(round(seconds / 0.005))):
+        ti = T0 + i * 0.005
+        if i % 2 == 0:
+            stream.append((topics.JOINT_STATES, steering_msg(ti, steering_wheel)))
+        stream.append((topics.IMU, imu_msg(ti, [ax_bias, vx * r, G], [0, 0, r])))
+    return stream
+
+
 @pytest.mark.parametrize("corners", [True, False])
 def test_state_node_without_any_speed_measures_vx_in_corners(corners):
     """No wheel speeds, no vehicle/speed, an accelerometer biased by +0.3 m/s^2, on a steady
@@ -327,15 +340,7 @@ def test_state_node_without_any_speed_measures_vx_in_corners(corners):
     h = Harness(node)
     try:
         state, sideslip = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)])
-        p = node.vehicle
-        steering_wheel = p.steering_ratio * p.wheelbase * r_true / vx_true
-        stream = []
-        for i in range(4000):
-            ti = T0 + i * 0.005
-            if i % 2 == 0:
-                stream.append((topics.JOINT_STATES, steering_msg(ti, steering_wheel)))
-            stream.append((topics.IMU, imu_msg(ti, [0.3, vx_true * r_true, G], [0, 0, r_true])))
-        h.publish_stream(stream)
+        h.publish_stream(_circle_without_speed(node.vehicle, vx_true, r_true, 20.0, ax_bias=0.3))
         assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 19)
         assert h.wait_for(lambda: len(sideslip) > 100)
         vx = state[-1].twist.twist.linear.x
@@ -363,15 +368,7 @@ def test_aoukf_without_any_speed_runs_the_no_speed_filter(fallback):
     h = Harness(node)
     try:
         state, _ = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES)])
-        p = node.vehicle
-        steering_wheel = p.steering_ratio * p.wheelbase * r_true / vx_true
-        stream = []
-        for i in range(2000):
-            ti = T0 + i * 0.005
-            if i % 2 == 0:
-                stream.append((topics.JOINT_STATES, steering_msg(ti, steering_wheel)))
-            stream.append((topics.IMU, imu_msg(ti, [0.0, vx_true * r_true, G], [0, 0, r_true])))
-        h.publish_stream(stream)
+        h.publish_stream(_circle_without_speed(node.vehicle, vx_true, r_true, 10.0))
         assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 9)
         assert node.core.initialised
         status = node.status_values()["filter"]
