@@ -268,8 +268,7 @@ def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, 
     q1, R1, P1 = np.empty(4), np.empty((3, 3)), np.empty((n, n))
     propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, q1, R1, P1)
     outcome = constraint_update(R1, Rm, v, rows, W, full_jacobian, mounting_min_speed, mounting, hold_row, p, ba,
-                                bg, q1, P1,
-                                q_out, R_out, Rm_out, P_out)
+                                bg, q1, P1, q_out, R_out, Rm_out, P_out)
     if outcome != UPDATE_APPLIED:
         q_out[:] = q1
         R_out[:, :] = R1
