@@ -374,7 +374,7 @@ def test_aoukf_without_any_speed_runs_the_no_speed_filter(fallback):
         status = node.status_values()["filter"]
         if fallback:
             assert node.running_filter == "vbackf" and type(node.core).__name__ == "VehicleStateVBACKF"
-            assert status == "vbackf (instead of aoukf, which needs a speed: none at the start)"
+            assert status == "vbackf (instead of aoukf, which needs a speed: none yet)"
             assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.5)
         else:
             assert node.running_filter == "aoukf" and status == "aoukf"
@@ -382,6 +382,33 @@ def test_aoukf_without_any_speed_runs_the_no_speed_filter(fallback):
         assert node.running_filter == "aoukf" and type(node.core).__name__ == "VehicleStateAOUKF"
     finally:
         h.close()
+
+
+def test_a_speed_that_starts_late_hands_the_drive_back_to_aoukf():
+    """A recorder's CAN topic may start seconds after its IMU: the no-speed filter runs until
+    vehicle/speed comes, then the configured AO-UKF takes over from that speed."""
+    vx_true, r_true = 20.0, 0.25
+    node = StateNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("filter", value="aoukf"), Parameter("initial_vx", value=vx_true)])
+    h = Harness(node)
+    try:
+        state, _ = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES),
+                                           (TwistWithCovarianceStamped, topics.SPEED)])
+        stream = _circle_without_speed(node.vehicle, vx_true, r_true, 6.0)
+        h.publish_stream(stream[:len(stream) // 2])          # 3 s without a speed
+        assert h.wait_for(lambda: node.running_filter == "vbackf" and node.core.initialised)
+        late = [(topics.SPEED, speed_msg(T0 + 3.0 + i * 0.02, vx_true)) for i in range(150)]
+        h.publish_stream(sorted(stream[len(stream) // 2:] + late, key=lambda m: _stamp(m[1])))
+        assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 5)
+        assert node.running_filter == "aoukf" and type(node.core).__name__ == "VehicleStateAOUKF"
+        assert node.status_values()["filter"] == "aoukf"
+        assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.5)
+    finally:
+        h.close()
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
 
 def _mass_drive_stream(p, mass_true: float, slope_msgs: bool, low_accel: float = 0.2, v0: float = 5.0):

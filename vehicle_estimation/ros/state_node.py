@@ -15,8 +15,8 @@ Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14, ``aoukf`` on the paper-002 3-D
   (``aoukf.filter`` ``ukf`` / ``ekf`` gives the paper's contrasts). Gross errors (spikes,
   bursts, a frozen sensor) are down-weighted or replaced; ``/diagnostics`` counts them. It
   takes vx as a measurement: on a drive with no speed of any kind (no wheel speeds and no
-  ``vehicle/speed`` in the first second) the node runs ``no_speed_filter`` instead, and
-  ``/diagnostics`` (``filter``) says so.
+  ``vehicle/speed`` in the first second) the node runs ``no_speed_filter`` instead, until a
+  speed comes, and ``/diagnostics`` (``filter``) says so.
 
 The filter is built from :data:`~vehicle_estimation.estimators.registry.STATE_FILTERS`; what it
 adds to ``/diagnostics`` comes from its ``status()``.
@@ -53,6 +53,7 @@ Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -196,8 +197,9 @@ class StateNode(EstimatorNode):
             self.no_speed_filter = self.declare_str(
                 "no_speed_filter", "vbackf",
                 f"Filter run instead of '{self.filter_name}' on a drive with no speed of any kind (no wheel "
-                "speeds, no vehicle/speed in its first second): that filter takes vx as a measurement, and "
-                "its tyre model alone pulls an unmeasured vx tens of m/s off; '' = run it all the same",
+                "speeds, no vehicle/speed in its first second), until a speed comes: that filter takes vx as "
+                "a measurement, and its tyre model alone pulls an unmeasured vx tens of m/s off; '' = run it "
+                "all the same",
                 tuple(name for name, m in STATE_FILTERS.items() if not m.needs_speed) + ("",))
         self.fallback_method = STATE_FILTERS[self.no_speed_filter] if self.no_speed_filter else None
         self.fallback_config = (self._declare_filter_config(self.fallback_method)
@@ -293,12 +295,17 @@ class StateNode(EstimatorNode):
         defaults, shared = with_state_settings(defaults, self.settings)
         return self.declare_config(method.config_prefix, defaults, exclude=shared)
 
-    def _make_core(self) -> StateEstimator:
-        """The configured filter; every core is checked at start-up (a bad config stops the node)."""
+    def _make_core(self, initial_vx: float | None = None) -> StateEstimator:
+        """The configured filter (starting from ``initial_vx`` where no wheel speed gives vx);
+        every core is checked at start-up (a bad config stops the node)."""
         correction = self.correction.fresh() if self.correction is not None else None
         self.running_filter = self.filter_name
+        settings, config = self.settings, self.filter_config
+        if initial_vx is not None:
+            settings = dataclasses.replace(settings, initial_vx=initial_vx)
+            config = with_state_settings(config, settings)[0] if config is not None else None
         try:
-            core = self.method.build(self.vehicle, self.filter_config, self.settings, correction)
+            core = self.method.build(self.vehicle, config, settings, correction)
             if self.fallback_method is not None:
                 self.fallback_method.build(self.vehicle, self.fallback_config, self.settings, None)
         except (TypeError, ValueError) as exc:
@@ -315,6 +322,16 @@ class StateNode(EstimatorNode):
         self.running_filter = self.no_speed_filter
         self.note_event(f"no wheel speeds and no vehicle/speed: filter '{self.no_speed_filter}' runs instead "
                         f"of '{self.filter_name}', which needs a speed (no_speed_filter)")
+
+    def _return_when_a_speed_comes(self, wheels: np.ndarray) -> None:
+        """While ``no_speed_filter`` runs: a speed that starts late (a recorder's CAN topic
+        after its IMU) hands the drive back to the configured filter, starting from that
+        speed (or from the wheels)."""
+        if self.running_filter == self.filter_name or not (np.isfinite(wheels[2:]).all() or self.speed is not None):
+            return
+        vx = self.speed[1] if self.speed is not None else float(self.core.x[0])
+        self.core = self._make_core(initial_vx=vx if math.isfinite(vx) else None)
+        self.note_event(f"a speed has come: filter '{self.filter_name}' runs again")
 
     def on_joint_states(self, t: float, msg: JointState) -> None:
         try:
@@ -402,6 +419,7 @@ class StateNode(EstimatorNode):
         if not math.isfinite(steer):
             steer = 0.0
         self._steer = steer
+        self._return_when_a_speed_comes(wheels)
         if (not self.core.initialised and (self.init_from_wheels or self.fallback_method is not None)
                 and not np.isfinite(wheels).all()):
             # Starting from initial_vx while the car may be moving costs seconds of transient
@@ -527,7 +545,7 @@ class StateNode(EstimatorNode):
         extra["roll compensation"] = self.roll_source
         extra["roll compensation sigma [m/s^2]"] = f"{math.sqrt(self._roll_ay_variance):.3f}"
         running = self.filter_name if self.running_filter == self.filter_name else (
-            f"{self.running_filter} (instead of {self.filter_name}, which needs a speed: none at the start)")
+            f"{self.running_filter} (instead of {self.filter_name}, which needs a speed: none yet)")
         return {**extra, "filter": running, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 
