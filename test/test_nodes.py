@@ -26,6 +26,7 @@ from vehicle_estimation.ros.mass_node import MassNode
 from vehicle_estimation.ros.runtime.upstream import companion
 from vehicle_estimation.ros.slope_node import SlopeNode
 from vehicle_estimation.ros.state_node import StateNode
+from vehicle_estimation.ros.stamps import stamp_ns
 
 G = 9.80665
 T0 = 1_700_000_000.0
@@ -398,17 +399,13 @@ def test_a_speed_that_starts_late_hands_the_drive_back_to_aoukf():
         h.publish_stream(stream[:len(stream) // 2])          # 3 s without a speed
         assert h.wait_for(lambda: node.running_filter == "vbackf" and node.core.initialised)
         late = [(topics.SPEED, speed_msg(T0 + 3.0 + i * 0.02, vx_true)) for i in range(150)]
-        h.publish_stream(sorted(stream[len(stream) // 2:] + late, key=lambda m: _stamp(m[1])))
+        h.publish_stream(sorted(stream[len(stream) // 2:] + late, key=lambda m: stamp_ns(m[1].header.stamp)))
         assert h.wait_for(lambda: len(state) > 100 and state[-1].header.stamp.sec >= int(T0) + 5)
         assert node.running_filter == "aoukf" and type(node.core).__name__ == "VehicleStateAOUKF"
         assert node.status_values()["filter"] == "aoukf"
         assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.5)
     finally:
         h.close()
-
-
-def _stamp(msg) -> float:
-    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
 
 def _mass_drive_stream(p, mass_true: float, slope_msgs: bool, low_accel: float = 0.2, v0: float = 5.0):

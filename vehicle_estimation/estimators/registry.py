@@ -187,6 +187,10 @@ class StateFilter(Method):
     needs_speed: bool = False
 
 
+#: The filter a node that ``needs_speed`` runs on a drive without any speed (``no_speed_filter``).
+DEFAULT_NO_SPEED_FILTER = "vbackf"
+
+
 def with_state_settings(config: Any, settings: StateSettings) -> tuple[Any, tuple[str, ...]]:
     """``config`` with its :data:`NODE_STATE_FIELDS` taken from ``settings``, and the names of
     those fields (the node declares them once, not under the filter's prefix)."""

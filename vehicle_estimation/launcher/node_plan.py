@@ -15,7 +15,7 @@ import yaml
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS, merge_ros_parameters
-from vehicle_estimation.estimators.registry import STATE_FILTERS
+from vehicle_estimation.estimators.registry import DEFAULT_NO_SPEED_FILTER, STATE_FILTERS
 from vehicle_estimation.estimators.state.core import DEFAULT_CORNERING_ACCEL_STD
 from vehicle_estimation.io.bag_survey import InspectError, TopicStats
 from vehicle_estimation.ros import PIPELINE
@@ -201,7 +201,7 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
                        if float(vs.get("cornering_speed_accel_std", DEFAULT_CORNERING_ACCEL_STD)) > 0.0 else "")
             lines.append(f"no wheel speeds: vx dead-reckoned from ax (drifts){corners}{hint}")
             state_vx = "dead_reckoned"
-            fallback = str(vs.get("no_speed_filter", "vbackf"))
+            fallback = str(vs.get("no_speed_filter", DEFAULT_NO_SPEED_FILTER))
             configured = STATE_FILTERS.get(str(vs["filter"]))
             if configured is not None and configured.needs_speed and fallback:
                 lines.append(f"{vs['filter']} needs a speed: filter {fallback} runs instead "

@@ -67,6 +67,7 @@ from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.common.noise import white_equivalent_variance
 from vehicle_estimation.estimators.interfaces import StateEstimator
 from vehicle_estimation.estimators.registry import (
+    DEFAULT_NO_SPEED_FILTER,
     STATE_FILTERS,
     StateFilter,
     StateSettings,
@@ -195,7 +196,7 @@ class StateNode(EstimatorNode):
         self.no_speed_filter = ""
         if self.method.needs_speed:
             self.no_speed_filter = self.declare_str(
-                "no_speed_filter", "vbackf",
+                "no_speed_filter", DEFAULT_NO_SPEED_FILTER,
                 f"Filter run instead of '{self.filter_name}' on a drive with no speed of any kind (no wheel "
                 "speeds, no vehicle/speed in its first second), until a speed comes: that filter takes vx as "
                 "a measurement, and its tyre model alone pulls an unmeasured vx tens of m/s off; '' = run it "
@@ -204,6 +205,8 @@ class StateNode(EstimatorNode):
         self.fallback_method = STATE_FILTERS[self.no_speed_filter] if self.no_speed_filter else None
         self.fallback_config = (self._declare_filter_config(self.fallback_method)
                                 if self.fallback_method is not None else None)
+        if self.fallback_method is not None:
+            self._make_fallback_core()          # a bad no_speed_filter config stops the node now
         self.running_filter = self.filter_name
         self.core = self._make_core()
         self.bias = FusionImuBias()
@@ -296,8 +299,7 @@ class StateNode(EstimatorNode):
         return self.declare_config(method.config_prefix, defaults, exclude=shared)
 
     def _make_core(self, initial_vx: float | None = None) -> StateEstimator:
-        """The configured filter (starting from ``initial_vx`` where no wheel speed gives vx);
-        every core is checked at start-up (a bad config stops the node)."""
+        """The configured filter (starting from ``initial_vx`` where no wheel speed gives vx)."""
         correction = self.correction.fresh() if self.correction is not None else None
         self.running_filter = self.filter_name
         settings, config = self.settings, self.filter_config
@@ -305,20 +307,30 @@ class StateNode(EstimatorNode):
             settings = dataclasses.replace(settings, initial_vx=initial_vx)
             config = with_state_settings(config, settings)[0] if config is not None else None
         try:
-            core = self.method.build(self.vehicle, config, settings, correction)
-            if self.fallback_method is not None:
-                self.fallback_method.build(self.vehicle, self.fallback_config, self.settings, None)
+            return self.method.build(self.vehicle, config, settings, correction)
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"filter '{self.filter_name}': {exc}") from exc
-        return core
+
+    def _make_fallback_core(self) -> StateEstimator:
+        """``no_speed_filter`` (built once at start-up too, so that a bad config stops the node)."""
+        assert self.fallback_method is not None
+        try:
+            return self.fallback_method.build(self.vehicle, self.fallback_config, self.settings, None)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"no_speed_filter '{self.no_speed_filter}': {exc}") from exc
+
+    def _speed_seen(self, wheels: np.ndarray) -> bool:
+        """Whether vx has a measurement: both rear wheel speeds now, or a vehicle/speed sample
+        since the start (or the last reset)."""
+        return bool(np.isfinite(wheels[2:]).all()) or math.isfinite(self.speed_t)
 
     def _fall_back_without_speed(self, wheels: np.ndarray) -> None:
         """Before the first step: a filter that needs a speed, on a drive that has none, is
         replaced by ``no_speed_filter`` (named in /diagnostics)."""
         if (self.fallback_method is None or self.running_filter != self.filter_name or self.core.initialised
-                or np.isfinite(wheels[2:]).all() or math.isfinite(self.speed_t)):
+                or self._speed_seen(wheels)):
             return
-        self.core = self.fallback_method.build(self.vehicle, self.fallback_config, self.settings, None)
+        self.core = self._make_fallback_core()
         self.running_filter = self.no_speed_filter
         self.note_event(f"no wheel speeds and no vehicle/speed: filter '{self.no_speed_filter}' runs instead "
                         f"of '{self.filter_name}', which needs a speed (no_speed_filter)")
@@ -327,7 +339,7 @@ class StateNode(EstimatorNode):
         """While ``no_speed_filter`` runs: a speed that starts late (a recorder's CAN topic
         after its IMU) hands the drive back to the configured filter, starting from that
         speed (or from the wheels)."""
-        if self.running_filter == self.filter_name or not (np.isfinite(wheels[2:]).all() or self.speed is not None):
+        if self.running_filter == self.filter_name or not self._speed_seen(wheels):
             return
         vx = self.speed[1] if self.speed is not None else float(self.core.x[0])
         self.core = self._make_core(initial_vx=vx if math.isfinite(vx) else None)
