@@ -546,6 +546,61 @@ def test_every_registered_state_filter_is_a_state_estimator():
         assert all(isinstance(k, str) and isinstance(v, str) for k, v in status.items())
 
 
+def test_every_state_filter_starts_from_a_handed_over_state():
+    """start_from: the next step begins at another filter's [vx, vy, r] and their covariance
+    (a wheel speed, where there is one, still gives vx); moments that are not finite or not
+    positive definite are ignored, and a reset forgets what was handed over."""
+    from vehicle_estimation.estimators.registry import STATE_FILTERS, StateSettings, with_state_settings
+
+    settings = StateSettings(p0_diag=(10.0,) * 5, q_diag=(1e-3,) * 5, r_diag=(4e-2, 4e-2, 6e-5),
+                             initial_vx=0.0, init_vx_from_wheel_speeds=True)
+    x = np.array([21.5, -0.4, 0.25])
+    P = np.diag([0.3, 0.01, 1e-4])
+    P[0, 1] = P[1, 0] = 0.02
+    no_wheels = VehicleInputs(0.0, np.full(4, np.nan))
+    for name, method in STATE_FILTERS.items():
+        config = method.config_type()
+        config = with_state_settings(config, settings)[0] if config is not None else None
+        core = method.build(SEDAN, config, settings, None)
+        unmeasured = [math.nan] * 3           # the first step then only starts the filter
+        core.start_from(x, P)
+        core.step(0.0, no_wheels, unmeasured)
+        assert core.x[:3] == pytest.approx(x) and core.P[:3, :3] == pytest.approx(P), name
+        core.start_from(x, P)
+        core.step(1.0, VehicleInputs(0.0, np.full(4, 20.0 / SEDAN.wheel_radius)), unmeasured)
+        assert core.x[:3] == pytest.approx([20.0, -0.4, 0.25]), name
+        for bad_x, bad_P in ((np.array([np.nan, 0.0, 0.0]), P), (x, -P)):
+            core.start_from(bad_x, bad_P)
+            core.step(2.0, no_wheels, unmeasured)
+            assert core.x[1:3] == pytest.approx([0.0, 0.0]), name       # from the prior
+        core.start_from(x, P)
+        core.reset()
+        core.step(3.0, no_wheels, unmeasured)
+        assert core.x[1:3] == pytest.approx([0.0, 0.0]), name
+
+
+def test_speed_presence_holds_either_way():
+    """A second without a speed sample is "lost" (from the first clock where none came yet), a
+    second of samples without a gap over max_gap_s is "back"; shorter dropouts change nothing."""
+    from vehicle_estimation.estimators.state.core import SpeedPresence
+
+    presence = SpeedPresence(hold_s=1.0, max_gap_s=0.5)
+    presence.clock(10.0)
+    assert not presence.lost(10.9) and presence.lost(11.0) and not presence.ever
+    for t in np.arange(11.0, 12.0, 0.1):          # 0.9 s of samples: not yet back
+        presence.sample(t)
+    assert not presence.back(11.95) and not presence.lost(11.95)
+    presence.sample(12.05)
+    assert presence.back(12.1) and presence.ever
+    presence.sample(12.5)                          # a 0.45 s gap keeps the run
+    assert presence.back(12.6) and not presence.lost(13.4) and presence.lost(13.5)
+    presence.sample(14.2)                          # after the gap a new run: not back at once
+    assert not presence.back(14.2) and not presence.lost(14.2)
+    presence.reset()
+    presence.clock(20.0)
+    assert not presence.ever and presence.lost(21.0)
+
+
 # ------------------------------------------------------------------ mass estimators (papers 003, 004, 000)
 mass_step = st.tuples(
     dt_strategy(0.05, 2.0),

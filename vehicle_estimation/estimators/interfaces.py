@@ -101,6 +101,9 @@ class StateEstimator(Protocol):
     def update_speed(self, vx: float, variance: float) -> bool:
         """Update vx with a measured speed (the CAN speed where no wheel speeds are)."""
 
+    def start_from(self, x: np.ndarray, P: np.ndarray) -> None:
+        """Start, at the next step, from another filter's [vx, vy, r] and their covariance."""
+
     def reset(self) -> None: ...
 
     def status(self) -> dict[str, str]: ...

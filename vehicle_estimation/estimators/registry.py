@@ -189,6 +189,9 @@ class StateFilter(Method):
 
 #: The filter a node that ``needs_speed`` runs on a drive without any speed (``no_speed_filter``).
 DEFAULT_NO_SPEED_FILTER = "vbackf"
+#: How long a speed must be missing before that filter runs, and back before the configured
+#: one runs again [s]: a CAN dropout shorter than this swaps nothing.
+NO_SPEED_HOLD_S = 1.0
 
 
 def with_state_settings(config: Any, settings: StateSettings) -> tuple[Any, tuple[str, ...]]:

@@ -261,7 +261,7 @@ class VehicleStateAOUKF(VehicleStateCore):
         delta = float(inputs.steer_angle)
         if not self.initialised:
             vx0 = self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None
-            self._filter.reset(self._x0(vx0), self._P0)
+            self._filter.reset(*self._initial_moments(vx0))
             self.initialised = True
         else:
             ax_kin = self._ax - self.params.gravity * math.sin(float(inputs.slope))

@@ -223,7 +223,7 @@ class VehicleStateCKF(VehicleStateCore):
             if not self.initialised:
                 vx0 = self._vx_from_wheels(inputs) if cfg.init_vx_from_wheel_speeds else None
                 if vx0 is not None:
-                    self._filter.reset(self._x0(vx0), cfg.P0)
+                    self._filter.reset(*self._initial_moments(vx0))
                 self.initialised = True
             else:
                 Q = self.process_noise * (dt / cfg.nominal_dt) if cfg.scale_q_with_dt else self._filter.Q

@@ -164,6 +164,48 @@ class RollAccelerationTerm:
         self._sum, self._count, self._last = 0.0, 0, None
 
 
+class SpeedPresence:
+    """Whether vx has a measurement, with a hold either way.
+
+    A filter that takes vx as a measurement (paper 002's AO-UKF) must not run without one, and
+    filters swapped at every short CAN dropout would run neither well. Feed the stamp of every
+    speed sample (a wheel speed, a CAN speed) with :meth:`sample` and the clock with
+    :meth:`clock`: :meth:`lost` once no sample has come for ``hold_s`` (from the first clock,
+    where none came yet), :meth:`back` once samples have come for ``hold_s`` without a gap of
+    more than ``max_gap_s``."""
+
+    def __init__(self, hold_s: float, max_gap_s: float) -> None:
+        self.hold_s = float(hold_s)
+        self.max_gap_s = float(max_gap_s)
+        self.reset()
+
+    def reset(self) -> None:
+        self._first_t: Optional[float] = None
+        self._last_t = -math.inf        # the last speed sample
+        self._run_from = -math.inf      # the first sample after the last gap
+
+    def sample(self, t: float) -> None:
+        if t - self._last_t > self.max_gap_s:
+            self._run_from = t
+        self._last_t = max(self._last_t, t)
+
+    def clock(self, t: float) -> None:
+        if self._first_t is None:
+            self._first_t = t
+
+    @property
+    def ever(self) -> bool:
+        """Whether any speed sample came (since the start or the last reset)."""
+        return math.isfinite(self._last_t)
+
+    def lost(self, t: float) -> bool:
+        start = self._first_t if self._first_t is not None else t
+        return t - max(self._last_t, start) >= self.hold_s - 1e-9
+
+    def back(self, t: float) -> bool:
+        return t - self._last_t <= self.max_gap_s and self._last_t - self._run_from >= self.hold_s - 1e-9
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelErrorSettings:
     """Model errors that no filter represents and that every core adds to its published
@@ -227,6 +269,7 @@ class VehicleStateCore(StepGuard, ABC):
         self.compiled_checks = False
         self._factor_work = np.empty_like(P0, dtype=float)
         self._known_noise: Optional[np.ndarray] = None
+        self._handed_over: Optional[tuple[np.ndarray, np.ndarray]] = None   # see start_from
 
     #: True for a filter that learns its measurement noise (the VB-ACKF): the owner then gives
     #: it the sensor's stated noise as a floor (:meth:`set_known_noise`), which a filter with a
@@ -264,6 +307,39 @@ class VehicleStateCore(StepGuard, ABC):
         x0 = np.zeros(self._P0.shape[0])
         x0[0] = self._initial_vx if vx0 is None else float(vx0)
         return x0
+
+    def _initial_moments(self, vx0: Optional[float]) -> tuple[np.ndarray, np.ndarray]:
+        """The first step's mean and covariance: :meth:`start_from`'s where one was handed
+        over (with ``vx0``, from the wheels, in place of its vx), else ``[vx0, 0, ...]`` and P0."""
+        if self._handed_over is None:
+            return self._x0(vx0), self._P0
+        x0, P0 = self._handed_over[0].copy(), self._handed_over[1]
+        if vx0 is not None:
+            x0[0] = float(vx0)
+        return x0, P0
+
+    def start_from(self, x: np.ndarray, P: np.ndarray) -> None:
+        """Start, at the next step, from another filter's ``[vx, vy, r]`` and their covariance
+        (the filter's other states at their prior). A filter that takes a drive over mid-way
+        (the state node's no-speed filter, and back) then does not begin a corner from
+        vy = r = 0. Ignored where those moments are not finite and positive definite; a reset
+        (a stamp gap, a numerical failure) starts from the prior again."""
+        x3 = np.asarray(x, dtype=float)[:3]
+        P3 = np.asarray(P, dtype=float)[:3, :3]
+        self.reset(float(x3[0]) if np.isfinite(x3[0]) else None)
+        if not (np.isfinite(x3).all() and np.isfinite(P3).all()):
+            return
+        try:
+            np.linalg.cholesky(P3)
+        except np.linalg.LinAlgError:
+            return
+        x0, P0 = self._x0(float(x3[0])), self._P0.copy()
+        x0[:3] = x3
+        P0[:3, :] = 0.0
+        P0[:, :3] = 0.0
+        P0[:3, :3] = 0.5 * (P3 + P3.T)
+        self._handed_over = (x0, P0)
+        self._filter.reset(x0, P0)
 
     def _vx_from_wheels(self, inputs: VehicleInputs) -> Optional[float]:
         """Mean speed of the :attr:`_speed_wheels` times the wheel radius; None unless all are finite."""
@@ -327,6 +403,7 @@ class VehicleStateCore(StepGuard, ABC):
 
     def reset(self, vx0: Optional[float] = None) -> None:
         """Back to ``x0 = [vx0, 0, ...]`` (``vx0`` default: the initial speed), ``P0``; forget the stamp."""
+        self._handed_over = None
         self._filter.reset(self._x0(vx0), self._P0)
         self.t = None
         self.initialised = False
