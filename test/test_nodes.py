@@ -408,6 +408,52 @@ def test_a_speed_that_starts_late_hands_the_drive_back_to_aoukf():
         h.close()
 
 
+def test_a_speed_lost_mid_drive_runs_the_no_speed_filter_until_it_comes_back():
+    """A CAN speed that drops out mid-drive leaves the AO-UKF without the vx it measures (on
+    this circle its tyres pull vx up by some 1.5 m/s per second): after a second without one
+    the no-speed filter takes over the AO-UKF's state, and a second after the speed is back
+    the AO-UKF takes over again. A dropout shorter than that second swaps nothing, and a
+    swap does not move vy (each filter starts from the other's [vx, vy, r])."""
+    vx_true, r_true = 20.0, 0.25
+    node = StateNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("filter", value="aoukf"), Parameter("initial_vx", value=vx_true)])
+    h = Harness(node)
+    try:
+        state, _ = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES),
+                                           (TwistWithCovarianceStamped, topics.SPEED)])
+        circle = _circle_without_speed(node.vehicle, vx_true, r_true, 12.0)
+        # vehicle/speed at 50 Hz, with a 0.6 s dropout at 2 s and none from 4 to 8 s
+        speed = [(topics.SPEED, speed_msg(T0 + i * 0.02, vx_true)) for i in range(600)
+                 if not (2.0 <= i * 0.02 < 2.6 or 4.0 <= i * 0.02 < 8.0)]
+        stream = sorted(circle + speed, key=lambda m: stamp_ns(m[1].header.stamp))
+
+        def publish_until(seconds: float) -> None:
+            end_ns = int(round((T0 + seconds) * 1e9))
+            chunk = [m for m in stream if stamp_ns(m[1].header.stamp) < end_ns]
+            del stream[:len(chunk)]
+            h.publish_stream(chunk)
+            assert h.wait_for(lambda: state and stamp_ns(state[-1].header.stamp) >= end_ns - 20_000_000)
+
+        publish_until(3.9)
+        assert node.running_filter == "aoukf" and node.core.initialised    # the short dropout swapped nothing
+        publish_until(4.9)
+        assert node.running_filter == "aoukf"                              # a second not yet over
+        publish_until(5.1)
+        assert node.running_filter == "vbackf" and type(node.core).__name__ == "VehicleStateVBACKF"
+        assert node.status_values()["filter"] == "vbackf (instead of aoukf, which needs a speed: lost)"
+        publish_until(8.0)
+        assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.2)   # the corner's vx
+        publish_until(8.9)
+        assert node.running_filter == "vbackf"                             # back for under a second
+        publish_until(12.0)
+        assert node.running_filter == "aoukf" and type(node.core).__name__ == "VehicleStateAOUKF"
+        assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.1)
+        vy = np.array([m.twist.twist.linear.y for m in state])
+        assert np.abs(np.diff(vy)).max() < 0.05
+    finally:
+        h.close()
+
+
 def _mass_drive_stream(p, mass_true: float, slope_msgs: bool, low_accel: float = 0.2, v0: float = 5.0):
     """40 s of pulses of 1.2 m/s^2 and ``low_accel`` on a level road: IMU, CAN speed, wheels
     (brake torque when the pulse decelerates harder than the resistances), drive force, slope."""

@@ -14,9 +14,10 @@ Dugoff tyres (Eqs. 1-9) and sideslip from Eq. 14, ``aoukf`` on the paper-002 3-D
   package has them, a path loads that file, empty turns it off). Its tuning: ``aoukf.*``
   (``aoukf.filter`` ``ukf`` / ``ekf`` gives the paper's contrasts). Gross errors (spikes,
   bursts, a frozen sensor) are down-weighted or replaced; ``/diagnostics`` counts them. It
-  takes vx as a measurement: on a drive with no speed of any kind (no wheel speeds and no
-  ``vehicle/speed`` in the first second) the node runs ``no_speed_filter`` instead, until a
-  speed comes, and ``/diagnostics`` (``filter``) says so.
+  takes vx as a measurement: while there is no speed of any kind (no wheel speed and no
+  ``vehicle/speed`` sample for a second, from the start or later in the drive) the node runs
+  ``no_speed_filter`` instead, from the AO-UKF's state, until a speed has been back for a
+  second, and ``/diagnostics`` (``filter``) says so.
 
 The filter is built from :data:`~vehicle_estimation.estimators.registry.STATE_FILTERS`; what it
 adds to ``/diagnostics`` comes from its ``status()``.
@@ -53,7 +54,6 @@ Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any
 
@@ -68,6 +68,7 @@ from vehicle_estimation.estimators.common.noise import white_equivalent_variance
 from vehicle_estimation.estimators.interfaces import StateEstimator
 from vehicle_estimation.estimators.registry import (
     DEFAULT_NO_SPEED_FILTER,
+    NO_SPEED_HOLD_S,
     STATE_FILTERS,
     StateFilter,
     StateSettings,
@@ -82,7 +83,7 @@ from vehicle_estimation.estimators.state.gabpnn import (
 from vehicle_estimation.estimators.state.ckf import VehicleStateConfig
 from vehicle_estimation.estimators.state.core import (
     DEFAULT_CORNERING_ACCEL_STD, DEFAULT_CORNERING_MIN_YAW_RATE, CorneringSpeed, ModelErrorSettings,
-    RollAccelerationTerm)
+    RollAccelerationTerm, SpeedPresence)
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
     MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
@@ -192,21 +193,22 @@ class StateNode(EstimatorNode):
                 "GA-BPNN output correction (paper 002 Eq. 5) for filter aoukf: 'auto' = the "
                 "package's weights for vehicle.name if it ships them (else none), a path = that "
                 ".npz file, '' = none"))
-        # Chosen before the filter's first step, once the first second shows no speed at all.
+        # Chosen by the speed's presence (_choose_filter), from the first second on.
         self.no_speed_filter = ""
         if self.method.needs_speed:
             self.no_speed_filter = self.declare_str(
                 "no_speed_filter", DEFAULT_NO_SPEED_FILTER,
-                f"Filter run instead of '{self.filter_name}' on a drive with no speed of any kind (no wheel "
-                "speeds, no vehicle/speed in its first second), until a speed comes: that filter takes vx as "
-                "a measurement, and its tyre model alone pulls an unmeasured vx tens of m/s off; '' = run it "
-                "all the same",
+                f"Filter run instead of '{self.filter_name}' while there is no speed of any kind (no wheel "
+                "speed, no vehicle/speed for a second: from the start, or lost later), until one has "
+                "been back for a second: that filter takes vx as a measurement, and its tyre model alone "
+                "pulls an unmeasured vx tens of m/s off; '' = run it all the same",
                 tuple(name for name, m in STATE_FILTERS.items() if not m.needs_speed) + ("",))
         self.fallback_method = STATE_FILTERS[self.no_speed_filter] if self.no_speed_filter else None
         self.fallback_config = (self._declare_filter_config(self.fallback_method)
                                 if self.fallback_method is not None else None)
         if self.fallback_method is not None:
             self._make_fallback_core()          # a bad no_speed_filter config stops the node now
+        self.speed_presence = SpeedPresence(NO_SPEED_HOLD_S, self.stale_input_s)
         self.running_filter = self.filter_name
         self.core = self._make_core()
         self.bias = FusionImuBias()
@@ -298,52 +300,47 @@ class StateNode(EstimatorNode):
         defaults, shared = with_state_settings(defaults, self.settings)
         return self.declare_config(method.config_prefix, defaults, exclude=shared)
 
-    def _make_core(self, initial_vx: float | None = None) -> StateEstimator:
-        """The configured filter (starting from ``initial_vx`` where no wheel speed gives vx)."""
-        correction = self.correction.fresh() if self.correction is not None else None
+    def _make_core(self) -> StateEstimator:
+        """The configured filter."""
         self.running_filter = self.filter_name
-        settings, config = self.settings, self.filter_config
-        if initial_vx is not None:
-            settings = dataclasses.replace(settings, initial_vx=initial_vx)
-            config = with_state_settings(config, settings)[0] if config is not None else None
-        try:
-            return self.method.build(self.vehicle, config, settings, correction)
-        except (TypeError, ValueError) as exc:
-            raise ParameterError(f"filter '{self.filter_name}': {exc}") from exc
+        correction = self.correction.fresh() if self.correction is not None else None
+        return self._build(self.method, self.filter_config, correction, f"filter '{self.filter_name}'")
 
     def _make_fallback_core(self) -> StateEstimator:
         """``no_speed_filter`` (built once at start-up too, so that a bad config stops the node)."""
         assert self.fallback_method is not None
+        return self._build(self.fallback_method, self.fallback_config, None,
+                           f"no_speed_filter '{self.no_speed_filter}'")
+
+    def _build(self, method: StateFilter, config: Any, correction: BPCorrection | None,
+               what: str) -> StateEstimator:
         try:
-            return self.fallback_method.build(self.vehicle, self.fallback_config, self.settings, None)
+            return method.build(self.vehicle, config, self.settings, correction)
         except (TypeError, ValueError) as exc:
-            raise ParameterError(f"no_speed_filter '{self.no_speed_filter}': {exc}") from exc
+            raise ParameterError(f"{what}: {exc}") from exc
 
-    def _speed_seen(self, wheels: np.ndarray) -> bool:
-        """Whether vx has a measurement: both rear wheel speeds now, or a vehicle/speed sample
-        since the start (or the last reset)."""
-        return bool(np.isfinite(wheels[2:]).all()) or math.isfinite(self.speed_t)
-
-    def _fall_back_without_speed(self, wheels: np.ndarray) -> None:
-        """Before the first step: a filter that needs a speed, on a drive that has none, is
-        replaced by ``no_speed_filter`` (named in /diagnostics)."""
-        if (self.fallback_method is None or self.running_filter != self.filter_name or self.core.initialised
-                or self._speed_seen(wheels)):
+    def _choose_filter(self, t: float) -> None:
+        """A filter that needs a speed runs only while there is one: after NO_SPEED_HOLD_S with
+        no wheel speed and no vehicle/speed (from the start, or lost later) the node runs
+        ``no_speed_filter``, and after as long with a speed again the configured filter (a
+        recorder's CAN topic may start late, or drop out). Each takes over the other's state."""
+        if self.fallback_method is None:
             return
-        self.core = self._make_fallback_core()
-        self.running_filter = self.no_speed_filter
-        self.note_event(f"no wheel speeds and no vehicle/speed: filter '{self.no_speed_filter}' runs instead "
-                        f"of '{self.filter_name}', which needs a speed (no_speed_filter)")
-
-    def _return_when_a_speed_comes(self, wheels: np.ndarray) -> None:
-        """While ``no_speed_filter`` runs: a speed that starts late (a recorder's CAN topic
-        after its IMU) hands the drive back to the configured filter, starting from that
-        speed (or from the wheels)."""
-        if self.running_filter == self.filter_name or not self._speed_seen(wheels):
+        self.speed_presence.clock(t)
+        if self.running_filter == self.filter_name and self.speed_presence.lost(t):
+            core = self._make_fallback_core()
+            self.running_filter = self.no_speed_filter
+            self.note_event(f"no wheel speed and no vehicle/speed for {NO_SPEED_HOLD_S:g} s: filter "
+                            f"'{self.no_speed_filter}' runs instead of '{self.filter_name}', which needs a "
+                            "speed (no_speed_filter)")
+        elif self.running_filter != self.filter_name and self.speed_presence.back(t):
+            core = self._make_core()
+            self.note_event(f"a speed for {NO_SPEED_HOLD_S:g} s: filter '{self.filter_name}' runs again")
+        else:
             return
-        vx = self.speed[1] if self.speed is not None else float(self.core.x[0])
-        self.core = self._make_core(initial_vx=vx if math.isfinite(vx) else None)
-        self.note_event(f"a speed has come: filter '{self.filter_name}' runs again")
+        if self.core.initialised:
+            core.start_from(self.core.x, self.core.P)
+        self.core = core
 
     def on_joint_states(self, t: float, msg: JointState) -> None:
         try:
@@ -356,6 +353,8 @@ class StateNode(EstimatorNode):
             return
         self.chassis = reading
         self.chassis_t = t
+        if np.isfinite(reading.wheel_speeds[2:]).all():     # the rear wheels, as the filters read vx
+            self.speed_presence.sample(t)
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
         reading = self.read_speed(msg)
@@ -366,6 +365,7 @@ class StateNode(EstimatorNode):
             var = self.speed_fallback_std ** 2
         self.speed = (t, v, var)
         self.speed_t = t
+        self.speed_presence.sample(t)
 
     def _update_speed_fallback(self, t: float, rear_wheels_measured: bool) -> None:
         """vx from vehicle/speed when the wheel speeds are missing (each sample used once)."""
@@ -431,7 +431,7 @@ class StateNode(EstimatorNode):
         if not math.isfinite(steer):
             steer = 0.0
         self._steer = steer
-        self._return_when_a_speed_comes(wheels)
+        self._choose_filter(t)
         if (not self.core.initialised and (self.init_from_wheels or self.fallback_method is not None)
                 and not np.isfinite(wheels).all()):
             # Starting from initial_vx while the car may be moving costs seconds of transient
@@ -441,7 +441,6 @@ class StateNode(EstimatorNode):
                 self._first_imu_t = t
             if t - self._first_imu_t < WHEEL_WAIT_S:
                 return
-            self._fall_back_without_speed(wheels)
         # The filter steps at filter_rate_hz on the mean of the IMU samples since its last step:
         # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
         # measurement of the interval than any one sample.
@@ -539,6 +538,7 @@ class StateNode(EstimatorNode):
         self.chassis = None
         self.speed = None
         self.speed_t = -math.inf
+        self.speed_presence.reset()
         self._first_imu_t = None
         self._vx_measured = False
         self._last_pub = -math.inf
@@ -557,7 +557,8 @@ class StateNode(EstimatorNode):
         extra["roll compensation"] = self.roll_source
         extra["roll compensation sigma [m/s^2]"] = f"{math.sqrt(self._roll_ay_variance):.3f}"
         running = self.filter_name if self.running_filter == self.filter_name else (
-            f"{self.running_filter} (instead of {self.filter_name}, which needs a speed: none yet)")
+            f"{self.running_filter} (instead of {self.filter_name}, which needs a speed: "
+            f"{'lost' if self.speed_presence.ever else 'none yet'})")
         return {**extra, "filter": running, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
 
