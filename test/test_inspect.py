@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -165,6 +166,55 @@ def test_state_falls_back_to_vehicle_speed_without_wheel_speeds(bags, tmp_path):
     fallback = "aoukf needs a speed: filter vbackf runs instead (automatic fallback, no_speed_filter)"
     assert fallback in _node_text(summarize(bags["no_wheels"], _files(off, aoukf), {}), "vehicle_state")
     assert fallback not in _node_text(summarize(bags["no_wheels"], _files(on, aoukf), {}), "vehicle_state")
+
+
+def test_a_speed_missing_mid_drive_is_named_for_a_filter_that_needs_one(bags, tmp_path):
+    """The AO-UKF measures vx: where a bag's only speed, vehicle/speed, stops for 6 s, the plan
+    names the stretch the no-speed filter runs (from a second after the last sample to a second
+    after the next one); where the rear wheels' speeds are NaN for 6 s, likewise."""
+    first: list[float] = []
+
+    def dropout(i, topic, typ, raw):
+        if topic != topics.SPEED:
+            return topic, raw
+        sec, nanosec = struct.unpack("<iI", raw[4:12])
+        first.extend([] if first else [sec + nanosec * 1e-9])
+        return None if 6.0 <= sec + nanosec * 1e-9 - first[0] < 12.0 else (topic, raw)
+
+    bag = _copy(bags["no_wheels"], tmp_path / "speed_dropout", dropout)
+    aoukf = tmp_path / "aoukf.yaml"
+    aoukf.write_text("vehicle_state:\n  ros__parameters:\n    filter: aoukf\n")
+    text = _node_text(summarize(bag, _files(aoukf), {}), "vehicle_state")
+    found = re.search(r"aoukf needs a speed: filter vbackf runs where none came for 1 s, "
+                      r"([\d.]+)-([\d.]+) s after the first IMU sample", text)
+    assert found, text
+    start, end = map(float, found.groups())
+    assert start == pytest.approx(7.0, abs=0.1) and end == pytest.approx(13.0, abs=0.1)
+    for clean in (bags["no_wheels"], bags["full"]):
+        assert "runs where none came" not in _node_text(summarize(clean, _files(aoukf), {}), "vehicle_state")
+
+    first_joints: list[float] = []
+
+    def wheels_dropout(i, topic, typ, raw):
+        if topic == topics.SPEED:
+            return None
+        if topic != topics.JOINT_STATES:
+            return topic, raw
+        msg = TS.deserialize_cdr(raw, typ)
+        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        first_joints.extend([] if first_joints else [t])
+        if 6.0 <= t - first_joints[0] < 12.0:
+            velocity = msg.velocity.copy()
+            velocity[[msg.name.index(w) for w in topics.WHEEL_JOINTS]] = float("nan")
+            msg = dataclasses.replace(msg, velocity=velocity)
+        return topic, bytes(TS.serialize_cdr(msg, typ))
+
+    bag = _copy(bags["full"], tmp_path / "wheels_dropout", wheels_dropout)
+    text = _node_text(summarize(bag, _files(aoukf), {}), "vehicle_state")
+    found = re.search(r"runs where none came for 1 s, ([\d.]+)-([\d.]+) s after", text)
+    assert found, text
+    start, end = map(float, found.groups())
+    assert start == pytest.approx(7.0, abs=0.3) and end == pytest.approx(13.0, abs=0.3)
 
 
 def test_mass_without_propulsion_force(bags):

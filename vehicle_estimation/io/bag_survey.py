@@ -65,6 +65,10 @@ class TopicStats:
         self.sampled = 0
         # JointState: joint -> field -> [messages with the joint, finite values]
         self.joints: dict[str, dict[str, list[int]]] = {}
+        # vehicle/joint_states: stamps of the sampled messages with both rear wheel speeds (what
+        # the state filters read vx from), and every how many messages one is sampled
+        self.rear_wheel_stamps: list[float] = []
+        self.sample_every = 1
         self.malformed = 0
         # NavSatFix
         self.no_fix = 0
@@ -91,6 +95,10 @@ def _joint_sample(stats: TopicStats, msg: Any) -> None:
         for field, values in arrays.items():
             entry[field][0] += 1
             entry[field][1] += int(math.isfinite(values[i]))
+    if stats.contract == topics.JOINT_STATES:
+        rear = [names.index(w) for w in topics.WHEEL_JOINTS[2:] if w in names]
+        if len(rear) == 2 and np.isfinite(arrays["velocity"][rear]).all():
+            stats.rear_wheel_stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
 
 
 def _sample_content(stats: TopicStats, msg: Any) -> None:
@@ -143,6 +151,8 @@ def read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
         by_conn = {c.id: contract[remaps.get(topics.relative(c.topic), topics.relative(c.topic))] for c in used}
         cdr = {c.id: is2 and getattr(c.ext, "serialization_format", "cdr") == "cdr" for c in used}
         contract_ok = {c.id: c.msgtype == topics.INPUT_TYPES[by_conn[c.id].contract] for c in used}
+        for stats in contract.values():
+            stats.sample_every = every[stats.contract]
         for conn, log_ns, raw in reader.messages(connections=used) if used else ():
             stats = by_conn[conn.id]
             index = stats.count

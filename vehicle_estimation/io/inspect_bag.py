@@ -61,7 +61,8 @@ def summarize(bag: Path, params_files: list[Path], remaps: dict[str, str]) -> di
         others.append({"topic": topic, "types": sorted(entry["types"]), "count": entry["count"],
                        "role": "ground truth, used by report" if gt else "ignored",
                        "remap_hint": f"{hint}:={topic}" if hint else None})
-    plan = plan_nodes(inputs, params, contract[topics.IMU], contract[topics.SPEED])
+    plan = plan_nodes(inputs, params, contract[topics.IMU], contract[topics.SPEED],
+                      contract[topics.JOINT_STATES])
     shown = ("method", "filter", "speed_fallback", "accel_source", "speed_source", "require_slope",
              "mass.torque_regression", "vehicle.name", "vehicle.driven_axle", "vehicle.gear_ratios")
     return {

@@ -7,6 +7,7 @@ defaults it assumes are the nodes' declarations (:data:`NODE_DEFAULTS`, checked 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,7 @@ import yaml
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS, merge_ros_parameters
-from vehicle_estimation.estimators.registry import DEFAULT_NO_SPEED_FILTER, STATE_FILTERS
+from vehicle_estimation.estimators.registry import DEFAULT_NO_SPEED_FILTER, NO_SPEED_HOLD_S, STATE_FILTERS
 from vehicle_estimation.estimators.state.core import DEFAULT_CORNERING_ACCEL_STD
 from vehicle_estimation.io.bag_survey import InspectError, TopicStats
 from vehicle_estimation.ros import PIPELINE
@@ -129,8 +130,31 @@ def _alignment(stats: TopicStats | None, speed: TopicStats | None, fusion: dict[
             "empty (unless the car later stands still with a quiet IMU)"), False
 
 
+def _speedless_stretches(imu: TopicStats | None, stamps: np.ndarray,
+                         spacing_s: float) -> list[tuple[float, float]]:
+    """Where the state node runs ``no_speed_filter``: (from, to) in seconds after the IMU's
+    first stamp, from NO_SPEED_HOLD_S after a speed sample (``stamps``, which may skip up to
+    ``spacing_s`` of samples; after the first IMU sample where none came yet) with none after
+    it, to NO_SPEED_HOLD_S after the next sample."""
+    if imu is None or not imu.stamps:
+        return []
+    t0, t1 = min(imu.stamps), max(imu.stamps)
+    s = np.unique(stamps)
+    s = s[(s >= t0) & (s <= t1)]
+    gone = np.concatenate([[t0], s + spacing_s]) + NO_SPEED_HOLD_S   # the fallback from here
+    following = np.concatenate([s, [math.inf]])                   # to the next sample's hold
+    return [(float(a - t0), float(min(b + NO_SPEED_HOLD_S, t1) - t0))
+            for a, b in zip(gone, following) if b > a and a < t1]
+
+
+def _stretches_text(stretches: list[tuple[float, float]]) -> str:
+    shown = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in stretches[:3])
+    return shown + (f" and {len(stretches) - 3} more" if len(stretches) > 3 else "")
+
+
 def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
-          imu: TopicStats | None, speed_stats: TopicStats | None) -> dict[str, Any]:
+          imu: TopicStats | None, speed_stats: TopicStats | None,
+          joint_stats: TopicStats | None = None) -> dict[str, Any]:
     JS, PT = topics.JOINT_STATES, topics.POWERTRAIN
     have_imu = _usable(inputs, topics.IMU)
     have_speed = _usable(inputs, topics.SPEED)
@@ -188,6 +212,8 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
         empty += STATE_OUTPUTS
     else:
         lines.append(f"filter {vs['filter']}")
+        configured = STATE_FILTERS.get(str(vs["filter"]))
+        fallback = str(vs.get("no_speed_filter", DEFAULT_NO_SPEED_FILTER))
         if rear_wheels or all_wheels:
             lines.append("vx from the wheel speeds")
             state_vx = "wheels"
@@ -201,11 +227,22 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
                        if float(vs.get("cornering_speed_accel_std", DEFAULT_CORNERING_ACCEL_STD)) > 0.0 else "")
             lines.append(f"no wheel speeds: vx dead-reckoned from ax (drifts){corners}{hint}")
             state_vx = "dead_reckoned"
-            fallback = str(vs.get("no_speed_filter", DEFAULT_NO_SPEED_FILTER))
-            configured = STATE_FILTERS.get(str(vs["filter"]))
             if configured is not None and configured.needs_speed and fallback:
                 lines.append(f"{vs['filter']} needs a speed: filter {fallback} runs instead "
                              "(automatic fallback, no_speed_filter)")
+        if state_vx != "dead_reckoned" and configured is not None and configured.needs_speed and fallback:
+            # the wheel speeds are read from sampled messages: a gap as long as their spacing is none
+            stamps, spacing = [np.empty(0)], 0.0
+            if state_vx == "wheels" and joint_stats is not None and len(joint_stats.stamps) > 1:
+                stamps.append(np.asarray(joint_stats.rear_wheel_stamps, dtype=float))
+                spacing = float(np.median(np.diff(np.sort(joint_stats.stamps)))) * joint_stats.sample_every
+            if have_speed and speed_stats is not None and _truthy(vs.get("speed_fallback", True)):
+                stamps.append(np.asarray(speed_stats.stamps, dtype=float))
+            stretches = _speedless_stretches(imu, np.concatenate(stamps), spacing)
+            if stretches:
+                lines.append(f"{vs['filter']} needs a speed: filter {fallback} runs where none came for "
+                             f"{NO_SPEED_HOLD_S:g} s, {_stretches_text(stretches)} after the first IMU "
+                             "sample (automatic fallback, no_speed_filter)")
         if have_js and _reported(inputs, JS, topics.STEERING_JOINT, "position"):
             lines.append("steering from steering_wheel")
         else:
