@@ -277,3 +277,26 @@ def test_stanford_command_smoke(tmp_path, capfd):
     row = [line for line in capfd.readouterr().out.splitlines() if line.startswith("ckf / ASSUMED")][-1]
     assert row.rstrip().endswith(f"% / {100 * beyond:.1f} %"), row
     assert (out / "comparison.png").is_file()
+
+
+@pytest.mark.skipif(not (STANFORD_DIR / "t.txt").is_file(), reason="Stanford data not available")
+def test_stanford_command_with_a_wheel_dropout(tmp_path, capfd):
+    """`--wheel-dropout 2:4` on the first 8 s with the AO-UKF: the wheel speeds are NaN for
+    2 s, the node runs the no-speed filter from 3 to 5 s and the AO-UKF again by the end, and
+    the errors over the stretch are in the JSON and the table."""
+    pytest.importorskip("rclpy")
+    import json
+    from vehicle_estimation import cli
+    out = tmp_path / "stanford"
+    code = cli.main(["stanford", "--out", str(out), "--rows", "800", "--filters", "aoukf", "--speed", "ref",
+                     "--warmup", "1", "--wheel-dropout", "2:4", "--quiet"])
+    assert code == 0
+    result = json.loads((out / "comparison.json").read_text(encoding="utf-8"))
+    assert result["wheel_dropout_s"] == [2.0, 4.0]
+    aoukf = result["rows"][1]
+    assert aoukf["dropout_metrics"]["sideslip"]["n"] > 150
+    assert aoukf["final_diagnostics"]["filter"] == "aoukf"
+    assert "a speed for 1 s: filter 'aoukf' runs again" in aoukf["final_diagnostics"]["last event"]
+    assert aoukf["metrics"]["vy"]["max_abs_error"] < 1.0
+    assert any(line.startswith("aoukf / ASSUMED") and "wheel dropout 2-4 s: beta RMSE" in line
+               for line in capfd.readouterr().out.splitlines())

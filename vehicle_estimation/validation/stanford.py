@@ -3,7 +3,7 @@
 Usage::
 
     vehicle-estimation stanford [--out DIR] [--data-dir DIR] [--filters ckf,vbackf,aoukf] [--speed none,ref]
-                                [--noise data|paper] [--rows N] [--quiet]
+                                [--noise data|paper] [--rows N] [--wheel-dropout FROM:TO] [--quiet]
 
 1. Imports the real drive of ``../shared/data/stanford_sideslip_2014`` beside the repository
    (``--data-dir`` gives another place; 550 s at 100 Hz,
@@ -31,6 +31,10 @@ Measurement noise (``--noise``): ``data`` (default) gives both filters ``r_diag`
 variance of the high-passed raw ax, ay and yaw rate, the way the baseline sets its own R;
 ``paper`` keeps paper 004's R (sigma_ay = 0.2 m/s^2, five times below this IMU's noise).
 The VB-ACKF learns R online either way.
+
+``--wheel-dropout FROM:TO`` makes the ``ref`` bag's wheel speeds NaN from FROM to TO seconds
+after the drive's start (a CAN dropout, or with TO past the end a speed lost for good); each
+row then also has ``dropout_metrics``, over that stretch.
 
 Metrics skip the first ``--warmup`` seconds (5 s) of the reference for every row alike.
 The yaw-rate reference is the zero-phase filtered yaw rate of the same INS gyro that feeds
@@ -116,6 +120,23 @@ def _add_vibration(bags: dict[str, Path], t: np.ndarray, ax: np.ndarray, ay: np.
 
 
 # --------------------------------------------------------------------- baseline
+def _drop_wheel_speeds(bag: Path, window: tuple[float, float], progress: bool) -> Path:
+    """``bag`` with its wheel speeds NaN over ``window`` (absolute stamps) [s]: a CAN dropout."""
+    from vehicle_estimation.io.bagtools import rewrite_bag
+
+    def drop(msg: Any, index: int) -> None:
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        if window[0] <= stamp < window[1]:
+            for i, name in enumerate(msg.name):
+                if name in T.WHEEL_JOINTS:
+                    msg.velocity[i] = math.nan
+
+    dropped = rewrite_bag(bag, bag.with_name(bag.name + "_wheel_dropout"), edit={T.JOINT_STATES: drop})
+    if progress:
+        print(f"[wheel dropout] {dropped}: wheel speeds NaN from {window[0]:.2f} to {window[1]:.2f} s")
+    return dropped
+
+
 def highpass_std(x: np.ndarray) -> float:
     """Std of the high-passed signal, as BetaStanfordLinear.m estimates sensor noise.
 
@@ -158,13 +179,14 @@ def baseline_linear_kf(t, ay, yaw_rate, delta, vx, *, m, lf, lr, iz, cf, cr) -> 
 
 # --------------------------------------------------------------------- metrics
 def _quantities(t, est: dict[str, tuple[np.ndarray, np.ndarray]], ref: dict[str, tuple[np.ndarray, np.ndarray]],
-                start: float) -> dict[str, dict]:
-    """MAE/RMSE/bias per quantity of ``est`` against ``ref`` (truth interpolated at the estimate stamps)."""
+                start: float, end: float = math.inf) -> dict[str, dict]:
+    """MAE/RMSE/bias per quantity of ``est`` against ``ref`` (truth interpolated at the estimate
+    stamps), from ``start`` to ``end``."""
     out = {}
     for key, (te, ye) in est.items():
         tr, yr = ref[key]
         ta, ea, ra = metrics.align(te, ye, tr, yr)
-        sel = ta >= start
+        sel = (ta >= start) & (ta < end)
         out[key] = metrics.summary(ea[sel], ra[sel])
     return out
 
@@ -256,12 +278,16 @@ def _estimates(data: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_dir: str | None = None,
         filters: list[str] | None = None, speeds: list[str] | None = None, noise: str = "data",
         rows: int | None = None, warmup_s: float = DEFAULT_WARMUP_S, progress: bool = True,
-        vibration_std: float = 0.0, vibration_seed: int = 0) -> dict:
+        vibration_std: float = 0.0, vibration_seed: int = 0,
+        wheel_dropout: tuple[float, float] | None = None) -> dict:
     """The whole comparison; returns the content of ``comparison.json``.
 
     ``vibration_std`` > 0 adds band-limited vibration (10-60 Hz, below 45 Hz at this log's
     100 Hz; that std per axis [m/s^2], seeded) to the accelerometer of every bag and of the baseline alike: the raw IMU of a real
     car carries several m/s^2 of it (issue "the bag a user brings").
+
+    ``wheel_dropout`` (from, to) [s after the drive's start] makes the ``ref`` bag's wheel speeds
+    NaN over that stretch; each row then has ``dropout_metrics`` over it too.
 
     ``node_group(params_files, overrides, log_dir)`` builds the node processes (see
     :func:`main`); ``params_files`` are the layers after the vehicle file.
@@ -283,6 +309,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
         raise ValueError(f"vibration_std must be >= 0, got {vibration_std!r}")
     if noise not in ("data", "paper"):
         raise ValueError(f"noise must be 'data' or 'paper', got {noise!r}")
+    if wheel_dropout is not None and not (0.0 <= wheel_dropout[0] < wheel_dropout[1]):
+        raise ValueError(f"wheel dropout must be FROM:TO with 0 <= FROM < TO [s], got {wheel_dropout!r}")
     for sub in ("bags", "runs"):
         if (out / sub).exists():
             shutil.rmtree(out / sub)
@@ -309,6 +337,9 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     ay = sig["imu.linear_acceleration.y"].values
     if vibration_std > 0.0:
         ax, ay = _add_vibration(bags, t, ax, ay, vibration_std, vibration_seed, progress)
+    dropout = None if wheel_dropout is None else (float(t[0]) + wheel_dropout[0], float(t[0]) + wheel_dropout[1])
+    if dropout is not None and "ref" in bags:
+        bags["ref"] = _drop_wheel_speeds(bags["ref"], dropout, progress)
     r = sig["imu.angular_velocity.z"].values
     delta = np.interp(t, sig[import_map.STEERING_KEY].t, sig[import_map.STEERING_KEY].values) / vehicle.steering_ratio
     ref = {"vx": (sig["ground_truth.vehicle_state.vx"].t, sig["ground_truth.vehicle_state.vx"].values),
@@ -336,6 +367,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
         "name": "baseline linear single-track KF", "filter": "baseline", "speed": "reference vx (as the source)",
         "metrics": _scaled(_quantities(t, baseline_est, ref, start)), "wall_s": time.monotonic() - wall,
         "sideslip_rmse_by_ay_band": _sideslip_by_band(baseline_est, ref, t, ay_smooth, start)}]
+    if dropout is not None:
+        rows_out[0]["dropout_metrics"] = _scaled(_quantities(t, baseline_est, ref, *dropout))
     series: dict[str, dict] = {"baseline": {k: v for k, v in baseline_est.items()}}
 
     # ---- replays
@@ -376,6 +409,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
                              "state_params": state,
                              "sideslip_rmse_by_ay_band": _sideslip_by_band(est, ref, t, ay_smooth, start),
                              "final_diagnostics": _final_diagnostics(estimates)})
+            if dropout is not None:
+                rows_out[-1]["dropout_metrics"] = _scaled(_quantities(t, est, ref, *dropout))
             series[f"{name}_{speed}"] = est
 
     base_rmse = rows_out[0]["metrics"]["sideslip"]["rmse"]
@@ -386,6 +421,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
         "data": data_dir, "mapping": str(map_path), "vehicle": VEHICLE,
         "samples": int(t.size), "duration_s": float(t[-1] - t[0]), "warmup_s": warmup_s,
         "noise": noise, "noise_std_from_data": noise_std, "vibration_std": vibration_std,
+        "wheel_dropout_s": list(wheel_dropout) if wheel_dropout is not None else None,
         "units": {"sideslip": "deg", "yaw_rate": "deg/s", "vy": "m/s", "vx": "m/s"},
         "rows": rows_out,
         "notes": [
@@ -464,6 +500,11 @@ def format_table(result: dict) -> str:
         lines.append(f"{_label(row):44.44s} " + " ".join(cells) + f" {flagged_text:>34s}")
     lines.append("honest: 95 % within 2 sigma, NEES 1 (above 1: the variance is too small); of the "
                  "samples flagged converged, at most 1 % beyond 3 sigma")
+    window = result.get("wheel_dropout_s")
+    for row in result["rows"] if window else ():
+        beta, vy = (row.get("dropout_metrics", {}).get(k, {}) for k in ("sideslip", "vy"))
+        lines.append(f"{_label(row):44.44s} wheel dropout {window[0]:g}-{window[1]:g} s: beta RMSE "
+                     f"{_number(beta.get('rmse')):.3f} deg, largest vy error {_number(vy.get('max_abs_error')):.3f} m/s")
     lines.append(f"{result['samples']} samples, {result['duration_s']:.0f} s; metrics after the first "
                  f"{result['warmup_s']:.0f} s; noise R: {result['noise']}")
     return "\n".join(lines)
@@ -526,9 +567,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="add 10-60 Hz vibration (up to 45 Hz at 100 Hz) of this std [m/s^2] to the "
                         "accelerometer, filters and baseline alike")
     p.add_argument("--vibration-seed", type=int, default=0, help="seed of the vibration")
+    p.add_argument("--wheel-dropout", type=_seconds_window, default=None, metavar="FROM:TO",
+                   help="ASSUMED wheel speeds (speed ref) NaN from FROM to TO s after the drive's start (a "
+                        "CAN dropout; TO past the end: lost for good); the errors over it are added")
     p.add_argument("--warmup", type=float, default=DEFAULT_WARMUP_S, help="seconds skipped by the metrics")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_namespace_option(p)
+
+
+def _seconds_window(text: str) -> tuple[float, float]:
+    try:
+        start, end = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected FROM:TO in seconds, got {text!r}") from None
+    return start, end
 
 
 def main(args: argparse.Namespace) -> int:
@@ -539,7 +591,7 @@ def main(args: argparse.Namespace) -> int:
                      filters=[f for f in args.filters.split(",") if f],
                      speeds=[s for s in args.speed.split(",") if s], noise=args.noise, rows=args.rows,
                      warmup_s=args.warmup, progress=not args.quiet, vibration_std=args.vibration_std,
-                     vibration_seed=args.vibration_seed)
+                     vibration_seed=args.vibration_seed, wheel_dropout=args.wheel_dropout)
     except (ValueError, RuntimeError) as exc:
         print(f"stanford comparison failed: {exc}", file=sys.stderr)
         return 1
