@@ -385,16 +385,23 @@ def test_aoukf_without_any_speed_runs_the_no_speed_filter(fallback):
         h.close()
 
 
+#: The state node's inputs in the AO-UKF tests: vehicle/speed too.
+AOUKF_INPUTS = [(Imu, topics.IMU), (JointState, topics.JOINT_STATES), (TwistWithCovarianceStamped, topics.SPEED)]
+
+
+def _aoukf_node(initial_vx: float) -> tuple[StateNode, Harness]:
+    node = StateNode(parameter_overrides=vehicle_overrides() + [
+        Parameter("filter", value="aoukf"), Parameter("initial_vx", value=initial_vx)])
+    return node, Harness(node)
+
+
 def test_a_speed_that_starts_late_hands_the_drive_back_to_aoukf():
     """A recorder's CAN topic may start seconds after its IMU: the no-speed filter runs until
-    vehicle/speed comes, then the configured AO-UKF takes over from that speed."""
+    vehicle/speed has come for a second, then the configured AO-UKF takes over its state."""
     vx_true, r_true = 20.0, 0.25
-    node = StateNode(parameter_overrides=vehicle_overrides() + [
-        Parameter("filter", value="aoukf"), Parameter("initial_vx", value=vx_true)])
-    h = Harness(node)
+    node, h = _aoukf_node(vx_true)
     try:
-        state, _ = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES),
-                                           (TwistWithCovarianceStamped, topics.SPEED)])
+        state, _ = watch_state_outputs(h, AOUKF_INPUTS)
         stream = _circle_without_speed(node.vehicle, vx_true, r_true, 6.0)
         h.publish_stream(stream[:len(stream) // 2])          # 3 s without a speed
         assert h.wait_for(lambda: node.running_filter == "vbackf" and node.core.initialised)
@@ -415,12 +422,9 @@ def test_a_speed_lost_mid_drive_runs_the_no_speed_filter_until_it_comes_back():
     the AO-UKF takes over again. A dropout shorter than that second swaps nothing, and a
     swap does not move vy (each filter starts from the other's [vx, vy, r])."""
     vx_true, r_true = 20.0, 0.25
-    node = StateNode(parameter_overrides=vehicle_overrides() + [
-        Parameter("filter", value="aoukf"), Parameter("initial_vx", value=vx_true)])
-    h = Harness(node)
+    node, h = _aoukf_node(vx_true)
     try:
-        state, _ = watch_state_outputs(h, [(Imu, topics.IMU), (JointState, topics.JOINT_STATES),
-                                           (TwistWithCovarianceStamped, topics.SPEED)])
+        state, _ = watch_state_outputs(h, AOUKF_INPUTS)
         circle = _circle_without_speed(node.vehicle, vx_true, r_true, 12.0)
         # vehicle/speed at 50 Hz, with a 0.6 s dropout at 2 s and none from 4 to 8 s
         speed = [(topics.SPEED, speed_msg(T0 + i * 0.02, vx_true)) for i in range(600)
