@@ -198,12 +198,16 @@ class SpeedPresence:
         """Whether any speed sample came (since the start or the last reset)."""
         return math.isfinite(self._last_t)
 
+    #: Stamps are floats: a hold that ends on a sample's stamp counts as over.
+    _TOLERANCE_S = 1e-9
+
     def lost(self, t: float) -> bool:
         start = self._first_t if self._first_t is not None else t
-        return t - max(self._last_t, start) >= self.hold_s - 1e-9
+        return t - max(self._last_t, start) >= self.hold_s - self._TOLERANCE_S
 
     def back(self, t: float) -> bool:
-        return t - self._last_t <= self.max_gap_s and self._last_t - self._run_from >= self.hold_s - 1e-9
+        return (t - self._last_t <= self.max_gap_s
+                and self._last_t - self._run_from >= self.hold_s - self._TOLERANCE_S)
 
 
 @dataclasses.dataclass(frozen=True)
