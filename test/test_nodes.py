@@ -420,13 +420,14 @@ def test_a_speed_lost_mid_drive_runs_the_no_speed_filter_until_it_comes_back():
     this circle its tyres pull vx up by some 1.5 m/s per second): after a second without one
     the no-speed filter takes over the AO-UKF's state, and a second after the speed is back
     the AO-UKF takes over again. A dropout shorter than that second swaps nothing, and a
-    swap does not move vy (each filter starts from the other's [vx, vy, r])."""
+    swap does not move vy (each filter starts from the other's [vx, vy, r]). A second dropout
+    runs the same no-speed filter again, with the noise it learnt in the first."""
     vx_true, r_true = 20.0, 0.25
     node, h = _aoukf_node(vx_true)
     try:
         state, _ = watch_state_outputs(h, AOUKF_INPUTS)
-        circle = _circle_without_speed(node.vehicle, vx_true, r_true, 12.0)
-        # vehicle/speed at 50 Hz, with a 0.6 s dropout at 2 s and none from 4 to 8 s
+        circle = _circle_without_speed(node.vehicle, vx_true, r_true, 13.1)
+        # vehicle/speed at 50 Hz, with a 0.6 s dropout at 2 s, none from 4 to 8 s and from 12 s
         speed = [(topics.SPEED, speed_msg(T0 + i * 0.02, vx_true)) for i in range(600)
                  if not (2.0 <= i * 0.02 < 2.6 or 4.0 <= i * 0.02 < 8.0)]
         stream = sorted(circle + speed, key=lambda m: stamp_ns(m[1].header.stamp))
@@ -445,6 +446,7 @@ def test_a_speed_lost_mid_drive_runs_the_no_speed_filter_until_it_comes_back():
         publish_until(5.1)
         assert node.running_filter == "vbackf" and type(node.core).__name__ == "VehicleStateVBACKF"
         assert node.status_values()["filter"] == "vbackf (instead of aoukf, which needs a speed: lost)"
+        fallback = node.core
         publish_until(8.0)
         assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.2)   # the corner's vx
         publish_until(8.9)
@@ -454,6 +456,12 @@ def test_a_speed_lost_mid_drive_runs_the_no_speed_filter_until_it_comes_back():
         assert state[-1].twist.twist.linear.x == pytest.approx(vx_true, abs=0.1)
         vy = np.array([m.twist.twist.linear.y for m in state])
         assert np.abs(np.diff(vy)).max() < 0.05
+        learnt = fallback.measurement_noise_diagonal.copy()
+        prior = node._make_fallback_core().measurement_noise_diagonal
+        assert not np.allclose(learnt, prior, rtol=0.2)
+        publish_until(13.1)
+        assert node.core is fallback                                       # the same filter ...
+        assert node.core.measurement_noise_diagonal == pytest.approx(learnt, rel=0.05)   # ... and its noise
     finally:
         h.close()
 

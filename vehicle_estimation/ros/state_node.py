@@ -206,8 +206,10 @@ class StateNode(EstimatorNode):
         self.fallback_method = STATE_FILTERS[self.no_speed_filter] if self.no_speed_filter else None
         self.fallback_config = (self._declare_filter_config(self.fallback_method)
                                 if self.fallback_method is not None else None)
-        if self.fallback_method is not None:
-            self._make_fallback_core()          # a bad no_speed_filter config stops the node now
+        # The filter not running now (built here, so that a bad no_speed_filter config stops the
+        # node at start-up): kept across swaps, so a VB-ACKF keeps the noise it learnt, which
+        # is the sensors' and not the drive's.
+        self._idle_core = self._make_fallback_core() if self.fallback_method is not None else None
         self.speed_presence = SpeedPresence(NO_SPEED_HOLD_S, self.stale_input_s)
         self.running_filter = self.filter_name
         self.core = self._make_core()
@@ -323,24 +325,28 @@ class StateNode(EstimatorNode):
         """A filter that needs a speed runs only while there is one: after NO_SPEED_HOLD_S with
         no wheel speed and no vehicle/speed (from the start, or lost later) the node runs
         ``no_speed_filter``, and after as long with a speed again the configured filter (a
-        recorder's CAN topic may start late, or drop out). Each takes over the other's state."""
+        recorder's CAN topic may start late, or drop out). Each takes over the other's state;
+        the one stepping out waits with what it learnt (a VB-ACKF's noise) for the next swap."""
         if self.fallback_method is None:
             return
         self.speed_presence.clock(t)
         if self.running_filter == self.filter_name and self.speed_presence.lost(t):
-            core = self._make_fallback_core()
             self.running_filter = self.no_speed_filter
             self.note_event(f"no wheel speed and no vehicle/speed for {NO_SPEED_HOLD_S:g} s: filter "
                             f"'{self.no_speed_filter}' runs instead of '{self.filter_name}', which needs a "
                             "speed (no_speed_filter)")
         elif self.running_filter != self.filter_name and self.speed_presence.back(t):
-            core = self._make_core()
+            self.running_filter = self.filter_name
             self.note_event(f"a speed for {NO_SPEED_HOLD_S:g} s: filter '{self.filter_name}' runs again")
         else:
             return
+        core = self._idle_core
+        assert core is not None             # built with the fallback's method
         if self.core.initialised:
             core.start_from(self.core.x, self.core.P)
-        self.core = core
+        else:
+            core.reset()
+        self._idle_core, self.core = self.core, core
 
     def on_joint_states(self, t: float, msg: JointState) -> None:
         try:
@@ -531,6 +537,7 @@ class StateNode(EstimatorNode):
 
     def reset_estimators(self) -> None:
         self.core = self._make_core()
+        self._idle_core = self._make_fallback_core() if self.fallback_method is not None else None
         self.bias.clear()
         self.slope.clear()
         self.mass.clear()
