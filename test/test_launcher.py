@@ -95,3 +95,30 @@ def test_run_in_process_refuses_a_bad_parameter_naming_it(tmp_path):
                            "--params", str(params), "--state-dir", ""], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "mass: invalid parameter" in proc.stderr and "time_jump_reset_s" in proc.stderr
+
+
+def test_a_shutdown_under_a_publishing_callback_is_a_clean_stop():
+    """A SIGTERM shuts rclpy's context down at any moment. A callback that publishes just after
+    it raises rclpy's RCLError; spin() takes that for the stop it is. Under load the launcher
+    exited 1 with a traceback instead of 0."""
+    import rclpy
+    from rclpy.node import Node
+    from std_msgs.msg import Float64
+
+    from vehicle_estimation.ros.runtime.spin import spin
+
+    rclpy.init()
+    node = Node("shutdown_probe")
+    publisher = node.create_publisher(Float64, "shutdown_probe", 1)
+
+    def shut_down_then_publish() -> None:
+        rclpy.shutdown()
+        publisher.publish(Float64())
+
+    node.create_timer(0.01, shut_down_then_publish)
+    try:
+        spin([node], "shutdown_probe")         # returns: no RCLError escapes
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    assert not rclpy.ok()

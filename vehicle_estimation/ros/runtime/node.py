@@ -229,6 +229,8 @@ class EstimatorNode(ParameterDeclarations, Node):
         return self.health.summary()
 
     def _publish_diagnostics(self) -> None:
+        if not self.context.ok():       # a timer that fires after a signal has shut rclpy down
+            return
         level, message = self.status_summary()
         self._diag_pub.publish(self.health.array(
             self.get_name(), level, message, len(self.inputs), self.inputs.max_len, self.status_values(),

@@ -70,6 +70,11 @@ def spin(nodes: list[Node], profile_name: str) -> None:
             executor.spin_until_future_complete(never, timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # rclpy's RCLError: a signal shut the context down between ok() and the wait, or while
+        # a callback was publishing. That is the stop it asked for, not a failure.
+        if rclpy.ok():
+            raise
     finally:
         if profiler is not None:
             _dump_profile(profiler, profile_name)
