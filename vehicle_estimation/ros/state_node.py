@@ -206,13 +206,8 @@ class StateNode(EstimatorNode):
         self.fallback_method = STATE_FILTERS[self.no_speed_filter] if self.no_speed_filter else None
         self.fallback_config = (self._declare_filter_config(self.fallback_method)
                                 if self.fallback_method is not None else None)
-        # The filter not running now (built here, so that a bad no_speed_filter config stops the
-        # node at start-up): kept across swaps, so a VB-ACKF keeps the noise it learnt, which
-        # is the sensors' and not the drive's.
-        self._idle_core = self._make_fallback_core() if self.fallback_method is not None else None
         self.speed_presence = SpeedPresence(NO_SPEED_HOLD_S, self.stale_input_s)
-        self.running_filter = self.filter_name
-        self.core = self._make_core()
+        self._start_cores()
         self.bias = FusionImuBias()
         self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
         self.mass = UpstreamHistory(lag_s=self.feedback_lag)
@@ -302,6 +297,13 @@ class StateNode(EstimatorNode):
         defaults, shared = with_state_settings(defaults, self.settings)
         return self.declare_config(method.config_prefix, defaults, exclude=shared)
 
+    def _start_cores(self) -> None:
+        """The configured filter, running, and ``no_speed_filter`` idle beside it: built here
+        too, so that a bad config stops the node at start-up, and kept across swaps, so that a
+        VB-ACKF keeps the noise it learnt, which is the sensors' and not the drive's."""
+        self.core = self._make_core()
+        self._idle_core = self._make_fallback_core() if self.fallback_method is not None else None
+
     def _make_core(self) -> StateEstimator:
         """The configured filter."""
         self.running_filter = self.filter_name
@@ -359,7 +361,7 @@ class StateNode(EstimatorNode):
             return
         self.chassis = reading
         self.chassis_t = t
-        if np.isfinite(reading.wheel_speeds[2:]).all():     # the rear wheels, as the filters read vx
+        if _rear_wheels_measured(reading.wheel_speeds):
             self.speed_presence.sample(t)
 
     def on_speed(self, t: float, msg: TwistWithCovarianceStamped) -> None:
@@ -492,8 +494,7 @@ class StateNode(EstimatorNode):
             self.reject("state:rejected_by_filter")
         if self.core.reinitialisations != reinitialisations:
             self.note_event(f"vehicle-state filter {self.core.last_event}")
-        # vx is measured while both rear wheel speeds are there (the filter reads them).
-        rear_wheels_measured = bool(np.isfinite(wheels[2:]).all())
+        rear_wheels_measured = _rear_wheels_measured(wheels)
         if self.speed_fallback:
             self._update_speed_fallback(t, rear_wheels_measured)
         # Without a speed measurement vx integrates the accelerometer and drifts (between
@@ -536,8 +537,7 @@ class StateNode(EstimatorNode):
         self.publish(self.pub_beta, float64_bytes(beta))
 
     def reset_estimators(self) -> None:
-        self.core = self._make_core()
-        self._idle_core = self._make_fallback_core() if self.fallback_method is not None else None
+        self._start_cores()
         self.bias.clear()
         self.slope.clear()
         self.mass.clear()
@@ -568,6 +568,11 @@ class StateNode(EstimatorNode):
             f"{'lost' if self.speed_presence.ever else 'none yet'})")
         return {**extra, "filter": running, "vx [m/s]": f"{x[0]:.3f}", "vy [m/s]": f"{x[1]:.4f}",
                 "yaw rate [rad/s]": f"{x[2]:.4f}", "imu bias from fusion": str(self.bias.valid)}
+
+
+def _rear_wheels_measured(wheel_speeds: np.ndarray) -> bool:
+    """Whether both rear wheel speeds are there: the filters read vx from them."""
+    return bool(np.isfinite(wheel_speeds[2:]).all())
 
 
 def _stated_imu_variances(msg: Imu) -> tuple[float, float, float]:

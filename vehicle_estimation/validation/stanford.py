@@ -119,7 +119,6 @@ def _add_vibration(bags: dict[str, Path], t: np.ndarray, ax: np.ndarray, ay: np.
     return ax + vibration[:, 0], ay + vibration[:, 1]
 
 
-# --------------------------------------------------------------------- baseline
 def _drop_wheel_speeds(bag: Path, window: tuple[float, float], progress: bool) -> Path:
     """``bag`` with its wheel speeds NaN over ``window`` (absolute stamps) [s]: a CAN dropout."""
     from vehicle_estimation.io.bagtools import rewrite_bag
@@ -137,6 +136,7 @@ def _drop_wheel_speeds(bag: Path, window: tuple[float, float], progress: bool) -
     return dropped
 
 
+# --------------------------------------------------------------------- baseline
 def highpass_std(x: np.ndarray) -> float:
     """Std of the high-passed signal, as BetaStanfordLinear.m estimates sensor noise.
 
