@@ -199,6 +199,30 @@ def test_rotating_inertia_correction_removes_lumped_inertia():
     assert plain.mass - true_mass == pytest.approx(inertia, rel=0.1)
 
 
+
+def test_the_papers_lumped_inertia_is_in_the_variance():
+    """Without the correction (the paper's Eq. 28) the estimate is off by the wheels' equivalent
+    mass on every drive, an error the residuals cannot show: the published sigma must cover it,
+    and must not grow by it where the inertia is taken out. (Without the lasting force term the
+    paper's sigma here is a few kg for an error of ~38 kg.)"""
+    rng = np.random.default_rng(7)
+    true_mass = 1530.0
+    inertia = SEDAN.wheel_inertia / SEDAN.wheel_radius ** 2
+    plain = FFRLSMassEstimator(SEDAN)
+    corrected = FFRLSMassEstimator(SEDAN, FFRLSMassConfig(rotating_inertia_correction=True))
+    t, vx, ax, slope, brake = synthetic_drive(rng, 4000)
+    for k in range(t.size):
+        drive = eq28_drive_force(true_mass, vx[k], ax[k], slope[k], brake[k], rotating_inertia=inertia)
+        drive += rng.normal(0.0, 60.0)
+        plain.step(t[k], vx[k], ax[k], slope[k], drive_force=drive, brake_torque=brake[k])
+        corrected.step(t[k], vx[k], ax[k], slope[k], drive_force=drive, brake_torque=brake[k])
+    error = plain.mass - true_mass
+    assert error > 0.3 * inertia                       # the paper's estimate carries the wheels
+    assert abs(error) < 2.0 * math.sqrt(plain.variance), (error, math.sqrt(plain.variance))
+    assert math.sqrt(plain.residual_share) < 0.5 * abs(error)     # the residuals alone are bold
+    assert abs(corrected.mass - true_mass) < 2.0 * math.sqrt(corrected.variance)
+    assert corrected.variance < 0.25 * plain.variance
+    assert corrected.bias_variance == pytest.approx(0.0, abs=1e-6)
 def test_no_nan_from_nan_or_inf_inputs():
     est = FFRLSMassEstimator(SEDAN)
     assert est.step(0.0, 20.0, 1.0, 0.0, drive_force=2500.0)
