@@ -157,3 +157,62 @@ def test_a_case_names_its_methods_from_its_own_parameter_layers():
     assert layered["road_slope"] == shipped["road_slope"] and layered["vehicle_state"] == shipped["vehicle_state"]
     assert Case("x", "s", params_file("estimation"), params_file("estimation"), ("longitudinal",)).params == \
         ("estimation",)
+
+
+def test_method_cases_select_each_other_method_by_one_layer(tmp_path, monkeypatch):
+    """The ``methods`` group: one case per drive and per method a node offers besides the
+    shipped one, its last layer selecting that method (and nothing else), named after both."""
+    from vehicle_estimation.estimators import registry
+    from vehicle_estimation.validation import validate
+
+    lateral = validate.Case("cr", "s", tmp_path / "cr", params_file("commonroad_bmw320i"), ("lateral",))
+    longitudinal = [validate.Case(name, "s", tmp_path / name, params_file("sedan_d_class"), ("longitudinal",))
+                    for name in ("fastsim_hills", "fastsim_hills_no_gnss", "fastsim_hills_no_gnss_no_wheels")]
+    monkeypatch.setattr(validate, "_commonroad_cases", lambda root, quick: [lateral])
+    monkeypatch.setattr(validate, "_fastsim_cases", lambda root, quick: longitudinal)
+    cases = {c.name: c for c in validate._method_cases(tmp_path, quick=False)}
+    shipped = validate._shipped_methods()
+    expected = {f"cr_{f}": "vehicle_state" for f in registry.STATE_FILTERS if f != shipped["vehicle_state"]}
+    for drive in ("fastsim_hills", "fastsim_hills_no_gnss"):
+        expected.update({f"{drive}_{m}": "road_slope" for m in registry.SLOPE_METHODS if m != shipped["road_slope"]})
+        expected.update({f"{drive}_{m}": "mass" for m in registry.MASS_METHODS if m != shipped["mass"]})
+    assert {name: c.node for name, c in cases.items()} == expected
+    for name, case in cases.items():
+        method = next(m for m in (*registry.STATE_FILTERS, *registry.SLOPE_METHODS, *registry.MASS_METHODS)
+                      if name.endswith("_" + m))
+        ran = validate._shipped_methods(case.params)
+        assert ran[case.node] == method
+        assert {k: v for k, v in ran.items() if k != case.node} == \
+            {k: v for k, v in shipped.items() if k != case.node}
+    quick = validate._method_cases(tmp_path, quick=True)
+    assert {c.name for c in quick if c.node != "vehicle_state"} == \
+        {n for n in expected if n.startswith("fastsim_hills_") and "no_gnss" not in n}
+
+
+def test_a_method_case_runs_through_the_nodes_and_scores_its_own_node(tmp_path, monkeypatch):
+    """Another state filter through the nodes on the quick CommonRoad lane change: its rows name
+    the filter that ran, beside the same baseline, and only the state's rows are scored (the
+    fusion, slope and mass ran as in the shipped case)."""
+    from vehicle_estimation.launcher.options import node_group_factory
+    from vehicle_estimation.validation import validate
+
+    monkeypatch.setattr(validate, "_fastsim_cases", lambda root, quick: [])
+    monkeypatch.setattr(validate, "METHOD_DRIVES", {"vehicle_state": ("filter", "commonroad")})
+    result = validate.run(tmp_path / "out", node_group_factory("/"), cases=["methods"], quick=True,
+                          progress=False)
+    shipped = validate._shipped_methods()["vehicle_state"]
+    ran = {c["case"] for c in result["cases"]}
+    assert ran == {f"commonroad_dlc_{f}" for f in ("ckf", "vbackf", "aoukf") if f != shipped}
+    assert all(c["lossless"] for c in result["cases"])
+    for row in result["rows"]:
+        method = row["case"].rsplit("_", 1)[-1]
+        assert row["estimator"] == f"vehicle_state ({method})", row
+        assert row["baseline"] == "linear single-track KF"
+        assert math.isfinite(row["ours"]["rmse"]) and row["ratio"] == pytest.approx(
+            row["ours"]["rmse"] / row["base"]["rmse"])
+        assert row["ours"]["rmse"] < (1.0 if row["quantity"] == "sideslip" else 0.1)     # no divergence
+    assert {(r["case"], r["quantity"]) for r in result["rows"]} == {(c, q) for c in ran for q in ("sideslip", "vy")}
+    assert {r["quantity"] for r in result["consistency"]} <= {"sideslip", "vx", "vy", "yaw_rate"}
+    assert result["motion"] == []
+    assert "vehicle_state:\n  ros__parameters:\n    filter:" in \
+        (tmp_path / "out" / "bags" / "layers" / "vehicle_state_ckf.yaml").read_text()

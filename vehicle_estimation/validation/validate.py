@@ -23,6 +23,10 @@ Cases (``--cases``; default: all that can be made here):
   ``..._ta_aekf`` with ``params/heavy_truck_ta_aekf.yaml`` layered on (paper 000's TA-AEKF).
 * ``sim_hills``: *our own* simulator's hilly drive, labelled as such: the filters share its
   model, so it is a reference row, not evidence.
+* ``methods``: every method a node offers besides the shipped one (the other state filters on
+  the six CommonRoad drives; the other slope and mass methods on the FASTSim car drive with and
+  without GNSS), each as ``<drive>_<method>`` with one parameter layer that selects it, scored
+  against the same baselines.
 
 On every case, a second table holds the motion outputs against the raw sensor a user would
 otherwise take: the fusion's speed (the CAN speed), pitch (the accelerometer's kinematic tilt),
@@ -45,7 +49,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -74,8 +78,11 @@ class Case:
     kinds: tuple[str, ...]      # "lateral", "longitudinal"
     independent: bool = True    # False: our own simulator
     notes: list[str] = field(default_factory=list)
-    #: Node parameter files layered over the vehicle file, in order (names under params/).
+    #: Node parameter files layered over the vehicle file, in order (names under params/, or paths).
     params: tuple[str, ...] = ("estimation",)
+    #: A method case's node (the one whose method the last layer selects): only its rows are
+    #: scored; "": every node's.
+    node: str = ""
 
 
 # ------------------------------------------------------------------------------------ cases
@@ -106,13 +113,23 @@ def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
     except ImportError:
         return []
     try:
-        paths = fastsim_drive.generate(root / "fastsim", duration=120.0 if quick else None)
+        paths = _fastsim_bags(root / "fastsim", quick=quick)
     except ImportError as exc:          # the module is there, the library is not
         print(f"[validate] no FASTSim cases: {exc}")
         return []
     vehicle = root / "fastsim" / f"{fastsim_drive.VEHICLE_NAME}.yaml"
     source = f"NREL FASTSim 3.1.0 ({fastsim_drive.VEHICLE_RESOURCE.removesuffix('.yaml')})"
     return [Case(Path(p).name, source, Path(p), vehicle, ("longitudinal",)) for p in paths]
+
+
+def _fastsim_bags(folder: Path, *, quick: bool) -> list[Path]:
+    """The FASTSim drives in ``folder``, made there unless an earlier group of this run made them."""
+    from vehicle_estimation.validation import fastsim_drive
+
+    paths = [folder / name for name in fastsim_drive.VARIANTS]
+    if all(p.exists() for p in paths):
+        return paths
+    return fastsim_drive.generate(folder, duration=120.0 if quick else None)
 
 
 def _truck_cases(root: Path, *, quick: bool) -> list[Case]:
@@ -147,8 +164,44 @@ def _sim_cases(root: Path, *, quick: bool) -> list[Case]:
                  params_file("sedan_d_class"), ("longitudinal", "lateral"), independent=False)]
 
 
+#: The drives that score each node's other methods: the lateral drives for the state filters,
+#: the hilly car drive with and without GNSS for the slope and the mass (not the truck's four
+#: half hours; ``validate --cases truck`` runs paper 000's TA-AEKF there).
+METHOD_DRIVES = {"vehicle_state": ("filter", "commonroad"), "road_slope": ("method", "fastsim"),
+                 "mass": ("method", "fastsim")}
+METHOD_FASTSIM_DRIVES = ("fastsim_hills", "fastsim_hills_no_gnss")
+#: The consistency rows (:func:`consistency_rows`' quantities) of each node's estimates.
+NODE_ESTIMATES = {"vehicle_state": ("sideslip", "vx", "vy", "yaw_rate"), "road_slope": ("slope",),
+                  "mass": ("mass",)}
+
+
+def _method_cases(root: Path, *, quick: bool) -> list[Case]:
+    """Every method a node offers besides the shipped one, through the nodes on the drives of
+    :data:`METHOD_DRIVES`: the shipped params with one layer that selects the method (written to
+    ``root/layers``), each case named ``<drive>_<method>``. ``--quick``: the lane change and the
+    drive with GNSS."""
+    from vehicle_estimation.estimators import registry
+
+    offered = {"vehicle_state": registry.STATE_FILTERS, "road_slope": registry.SLOPE_METHODS,
+               "mass": registry.MASS_METHODS}
+    drives = {"commonroad": _commonroad_cases(root, quick=quick),
+              "fastsim": [c for c in _fastsim_cases(root, quick=quick)
+                          if c.name in METHOD_FASTSIM_DRIVES[:1 if quick else None]]}
+    shipped = _shipped_methods()
+    (root / "layers").mkdir(parents=True, exist_ok=True)
+    cases = []
+    for node, (key, group) in METHOD_DRIVES.items():
+        for method in sorted(set(offered[node]) - {shipped[node]}):
+            layer = root / "layers" / f"{node}_{method}.yaml"
+            layer.write_text(f"{node}:\n  ros__parameters:\n    {key}: {method}\n", encoding="utf-8")
+            cases += [replace(c, name=f"{c.name}_{method}", params=(*c.params, str(layer)), node=node)
+                      for c in drives[group]]
+    return cases
+
+
 CASE_BUILDERS: dict[str, Callable[..., list[Case]]] = {
-    "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "truck": _truck_cases, "sim": _sim_cases}
+    "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "truck": _truck_cases, "sim": _sim_cases,
+    "methods": _method_cases}
 
 
 # ------------------------------------------------------------------------------------ scoring
@@ -403,17 +456,23 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
         case_methods = _shipped_methods(case.params)
         est = _read_estimates(estimates)     # once: both kinds score the same recording
         inputs = _read_sensor_inputs(case.bag)
-        consistency += consistency_rows(case, est)
         series: dict = {}
+        case_rows = []
         if "lateral" in case.kinds:
             r, s = lateral_rows(case, est, vehicle, case_methods["vehicle_state"])
-            rows += r
+            case_rows += r
             series.update(s)
         if "longitudinal" in case.kinds:
             r, s = longitudinal_rows(case, est, inputs, vehicle, case_methods["mass"], case_methods["road_slope"])
-            rows += r
+            case_rows += r
             series.update(s)
-        motion += motion_rows(case, est, inputs, vehicle, case_methods["vehicle_state"])
+        if case.node:       # a method case: the other nodes ran as in the shipped case of its drive
+            rows += [r for r in case_rows if r["estimator"].startswith(case.node)]
+            consistency += [r for r in consistency_rows(case, est) if r["quantity"] in NODE_ESTIMATES[case.node]]
+        else:
+            rows += case_rows
+            consistency += consistency_rows(case, est)
+            motion += motion_rows(case, est, inputs, vehicle, case_methods["vehicle_state"])
         _plot(case, series, out / f"{case.name}.png")
         replays.append({"case": case.name, "source": case.source, "bag": str(case.bag),
                         "vehicle": str(case.vehicle), "params": list(case.params),
