@@ -56,6 +56,29 @@ def test_classical_converges_to_constant_3_percent(mode):
         assert math.sqrt(obs.variance) < 0.005
 
 
+def test_classical_variance_covers_its_lag_where_the_grade_changes_as_on_real_roads():
+    """Hills whose grade changes at up to 0.54 deg/s (real roads: 0.5-0.7 deg/s): the theta' = 0
+    model lags there, and its variance must carry it. Five drives, after 10 s: 98 % of the
+    errors within 2 sigma, NEES 0.89 (at the earlier slope_rate_std of 0.003: 55 %, 11 % beyond
+    3 sigma, NEES 4.2)."""
+    z = []
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        obs = ClassicalSlopeObserver()
+        vx = 15.0
+        for k in range(int(round(60.0 / DT))):
+            t = k * DT
+            a = 0.5 * math.sin(0.5 * t)
+            vx += a * DT
+            th = 0.03 * math.sin(2.0 * math.pi * t / 20.0)
+            obs.step(t, a + G * math.sin(th) + rng.normal(0, 0.2), vx + rng.normal(0, 0.05))
+            if t > 10.0:
+                z.append((obs.slope - th) / math.sqrt(obs.variance))
+    z = np.abs(np.array(z))
+    assert np.mean(z < 2.0) >= 0.9 and np.mean(z > 3.0) <= 0.01
+    assert 0.5 < np.mean(z * z) < 1.5
+
+
 @pytest.mark.parametrize("mode,max_lag", [("kalman", 1.5), ("luenberger", 0.5)])
 def test_classical_lags_a_ramp(mode, max_lag):
     rate = 0.005  # rad/s, 0 -> 0.06 rad between 5 s and 17 s
@@ -365,11 +388,11 @@ def test_cubic_prediction_tracks_ramp_with_less_lag_than_classical():
             lags.setdefault(name, []).append(_best_shift(t, est, truth, (t > 4.0) & (t < 25.0)))
     lag = {k: float(np.mean(v)) for k, v in lags.items()}
     print("ramp lag [s]:", lag)
-    assert lag["classical"] > 0.5
+    assert lag["classical"] > 0.35                      # 0.48 s at slope_rate_std 0.006 (0.003: 0.83 s)
     assert lag["classical_same_gain"] > 0.25            # theory: L1 / (-L2 g) = 0.47 s
     assert abs(lag["cubic_prediction"]) < 0.2
     assert lag["cubic_prediction"] < lag["classical_same_gain"] - 0.2
-    assert lag["cubic_prediction"] < lag["classical"] - 0.4
+    assert lag["cubic_prediction"] < lag["classical"] - 0.3
 
 
 def test_cubic_prediction_variance_is_consistent():
