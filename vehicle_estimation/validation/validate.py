@@ -184,9 +184,9 @@ def _method_cases(root: Path, *, quick: bool) -> list[Case]:
 
     offered = {"vehicle_state": registry.STATE_FILTERS, "road_slope": registry.SLOPE_METHODS,
                "mass": registry.MASS_METHODS}
+    fastsim = METHOD_FASTSIM_DRIVES[:1] if quick else METHOD_FASTSIM_DRIVES
     drives = {"commonroad": _commonroad_cases(root, quick=quick),
-              "fastsim": [c for c in _fastsim_cases(root, quick=quick)
-                          if c.name in METHOD_FASTSIM_DRIVES[:1 if quick else None]]}
+              "fastsim": [c for c in _fastsim_cases(root, quick=quick) if c.name in fastsim]}
     shipped = _shipped_methods()
     (root / "layers").mkdir(parents=True, exist_ok=True)
     cases = []
@@ -467,7 +467,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
             case_rows += r
             series.update(s)
         if case.node:       # a method case: the other nodes ran as in the shipped case of its drive
-            rows += [r for r in case_rows if r["estimator"].startswith(case.node)]
+            # every row's estimator reads "<node> (<method>)"
+            rows += [r for r in case_rows if r["estimator"].startswith(case.node + " (")]
             consistency += [r for r in consistency_rows(case, est) if r["quantity"] in NODE_ESTIMATES[case.node]]
         else:
             rows += case_rows

@@ -273,13 +273,13 @@ class TaAekfMassEstimator:
     def _prior_mass(self) -> float:
         m0 = self.config.initial_mass
         if math.isnan(m0):
-            trained = self.model.metadata.get("train_mass_range_kg") if self.model is not None else None
             if self.model is None:
                 m0 = self.params.mass
-            elif trained and not trained[0] <= self.params.mass <= trained[1]:
-                m0 = self.params.curb_mass       # the network's trucks say nothing of this vehicle
             else:
-                m0 = self.model.training_mean_mass
+                # the network's vehicles say nothing of one outside their masses
+                trained = self.model.metadata.get("train_mass_range_kg")
+                outside = trained is not None and not trained[0] <= self.params.mass <= trained[1]
+                m0 = self.params.curb_mass if outside else self.model.training_mean_mass
         return float(m0)
 
     def _network_bias_rel_std(self) -> float:
