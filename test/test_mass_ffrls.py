@@ -199,7 +199,6 @@ def test_rotating_inertia_correction_removes_lumped_inertia():
     assert plain.mass - true_mass == pytest.approx(inertia, rel=0.1)
 
 
-
 def test_the_papers_lumped_inertia_is_in_the_variance():
     """Without the correction (the paper's Eq. 28) the estimate is off by the wheels' equivalent
     mass on every drive, an error the residuals cannot show: the published sigma must cover it,
@@ -223,6 +222,8 @@ def test_the_papers_lumped_inertia_is_in_the_variance():
     assert abs(corrected.mass - true_mass) < 2.0 * math.sqrt(corrected.variance)
     assert corrected.variance < 0.25 * plain.variance
     assert corrected.bias_variance == pytest.approx(0.0, abs=1e-6)
+
+
 def test_no_nan_from_nan_or_inf_inputs():
     est = FFRLSMassEstimator(SEDAN)
     assert est.step(0.0, 20.0, 1.0, 0.0, drive_force=2500.0)
