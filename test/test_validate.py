@@ -214,5 +214,21 @@ def test_a_method_case_runs_through_the_nodes_and_scores_its_own_node(tmp_path, 
     assert {(r["case"], r["quantity"]) for r in result["rows"]} == {(c, q) for c in ran for q in ("sideslip", "vy")}
     assert {r["quantity"] for r in result["consistency"]} <= {"sideslip", "vx", "vy", "yaw_rate"}
     assert result["motion"] == []
-    assert "vehicle_state:\n  ros__parameters:\n    filter:" in \
-        (tmp_path / "out" / "bags" / "layers" / "vehicle_state_ckf.yaml").read_text()
+    # the node ran the filter its row names (its /diagnostics, recorded with the estimates)
+    for case in ran:
+        assert _diagnostic(tmp_path / "out" / "runs" / case / "estimates", "vehicle_state", "filter") == \
+            case.rsplit("_", 1)[-1]
+
+
+def _diagnostic(bag, node: str, key: str) -> str | None:
+    """The first value of ``key`` in ``node``'s /diagnostics status recorded in ``bag``."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
+        for conn, _, raw in reader.messages(connections=conns):
+            for status in reader.deserialize(raw, conn.msgtype).status:
+                values = {kv.key: kv.value for kv in status.values}
+                if status.name.endswith("/" + node) and key in values:
+                    return values[key]
+    return None
