@@ -45,6 +45,22 @@ def recorded_estimates(bag: Path) -> dict[str, list[tuple[int, bytes]]]:
     return out
 
 
+def diagnostic_statuses(bag: Path, node: str) -> list[dict[str, str]]:
+    """Every ``/diagnostics`` status that ``node`` (its name's last segment) published in a
+    recorded replay, in order, as its key-value pairs."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    out: list[dict[str, str]] = []
+    with AnyReader([Path(bag)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
+        for conn, _, data in reader.messages(connections=conns):
+            for status in reader.deserialize(data, conn.msgtype).status:
+                if status.name.rsplit("/", 1)[-1] == node:
+                    out.append({kv.key: kv.value for kv in status.values})
+    return out
+
+
 def first_difference(a: dict[str, list], b: dict[str, list]) -> str | None:
     """Where two :func:`recorded_estimates` differ first (None: byte for byte the same)."""
     if a.keys() != b.keys():

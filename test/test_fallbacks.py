@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
+from replay_values import diagnostic_statuses
 from vehicle_estimation.contract import topics
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 from vehicle_estimation.io.bagtools import rewrite_bag
@@ -85,18 +86,6 @@ def _read(bag: Path) -> tuple[dict[str, int], dict[str, dict[str, str]], dict[st
     return counts, diagnostics, {k: np.array(v) for k, v in series.items()}
 
 
-def _diagnostic_values(bag: Path, node: str, key: str) -> list[str]:
-    """Every value ``node``'s /diagnostics gave ``key`` in the drive, in order."""
-    values = []
-    with AnyReader([bag]) as reader:
-        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
-        for conn, _, data in reader.messages(connections=conns):
-            for status in reader.deserialize(data, conn.msgtype).status:
-                if status.name.split("/")[-1] == node:
-                    values += [kv.value for kv in status.values if kv.key == key]
-    return values
-
-
 def test_every_estimate_is_published_without_gnss_and_wheel_speeds(replayed):
     counts, _, _ = _read(replayed)
     for topic in ESTIMATES:
@@ -112,7 +101,8 @@ def test_diagnostics_name_each_fallback(replayed):
     # its prior, converged within the prior's variance: the slope node keeps it.
     assert diagnostics["fusion"]["accel bias estimation"].startswith("held at its prior")
     # ... and the mounting is refined by the constraints while the car drives, not at standstill.
-    mounting = _diagnostic_values(replayed, "fusion", "IMU mounting estimation")
+    mounting = [status["IMU mounting estimation"] for status in diagnostic_statuses(replayed, "fusion")
+                if "IMU mounting estimation" in status]
     assert set(mounting) == {"refined by the vehicle constraints (no GNSS)", "held below 1 m/s without GNSS"}
     assert mounting[-1] == "held below 1 m/s without GNSS"          # the drive ends at rest
     assert diagnostics["road_slope"]["slope source"].startswith("fusion_pitch")

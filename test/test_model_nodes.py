@@ -21,6 +21,7 @@ import rclpy
 from rclpy.parameter import Parameter
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
+from replay_values import diagnostic_statuses
 from rosharness import init_rclpy, vehicle_overrides
 
 from vehicle_estimation.estimators.mass.ta_aekf import DEFAULT_MODEL_STEM
@@ -31,17 +32,6 @@ from vehicle_estimation.ros.state_node import StateNode
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
 TRUCK_MASS = 18042.0     # payload 12 t: far from the prior of the network's training mean
-
-
-def _diagnostic_values(bag: Path, node: str) -> dict[str, str]:
-    values: dict[str, str] = {}
-    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
-        for conn, _, raw in reader.messages(connections=conns):
-            for status in reader.deserialize(raw, conn.msgtype).status:
-                if status.name.endswith(node):
-                    values = {kv.key: kv.value for kv in status.values}
-    return values
 
 
 def test_truck_bag_through_the_mass_node_with_ta_aekf(tmp_path):
@@ -68,7 +58,8 @@ def test_truck_bag_through_the_mass_node_with_ta_aekf(tmp_path):
     assert masses[0] > 24000.0                     # the prior: the training set's mean gross mass
     assert abs(masses[-1] - TRUCK_MASS) / TRUCK_MASS < 0.05, masses[-1]
     assert variances[-1] < 0.1 * variances[0]
-    diag = _diagnostic_values(out, "mass")
+    statuses = diagnostic_statuses(out, "mass")
+    diag = statuses[-1] if statuses else {}
     assert diag.get("method") == "ta_aekf"
     tau = float(diag["confidence level tau (Eq. 19)"])
     assert 0.0 < tau <= 1.0

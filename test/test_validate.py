@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+from replay_values import diagnostic_statuses
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.validation import baselines
 from vehicle_estimation.contract.vehicle import load_vehicle_params
@@ -216,19 +217,6 @@ def test_a_method_case_runs_through_the_nodes_and_scores_its_own_node(tmp_path, 
     assert result["motion"] == []
     # the node ran the filter its row names (its /diagnostics, recorded with the estimates)
     for case in ran:
-        assert _diagnostic(tmp_path / "out" / "runs" / case / "estimates", "vehicle_state", "filter") == \
-            case.rsplit("_", 1)[-1]
-
-
-def _diagnostic(bag, node: str, key: str) -> str | None:
-    """The first value of ``key`` in ``node``'s /diagnostics status recorded in ``bag``."""
-    from rosbags.highlevel import AnyReader
-
-    with AnyReader([bag]) as reader:
-        conns = [c for c in reader.connections if c.topic == "/diagnostics"]
-        for conn, _, raw in reader.messages(connections=conns):
-            for status in reader.deserialize(raw, conn.msgtype).status:
-                values = {kv.key: kv.value for kv in status.values}
-                if status.name.endswith("/" + node) and key in values:
-                    return values[key]
-    return None
+        filters = [status["filter"] for status in diagnostic_statuses(
+            tmp_path / "out" / "runs" / case / "estimates", "vehicle_state") if "filter" in status]
+        assert filters[0] == case.rsplit("_", 1)[-1]
