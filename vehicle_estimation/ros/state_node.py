@@ -301,17 +301,17 @@ class StateNode(EstimatorNode):
         """The configured filter, running, and ``no_speed_filter`` idle beside it: built here
         too, so that a bad config stops the node at start-up, and kept across swaps, so that a
         VB-ACKF keeps the noise it learnt, which is the sensors' and not the drive's."""
+        self.running_filter = self.filter_name
         self.core = self._make_core()
         self._idle_core = self._make_fallback_core() if self.fallback_method is not None else None
 
     def _make_core(self) -> StateEstimator:
         """The configured filter."""
-        self.running_filter = self.filter_name
         correction = self.correction.fresh() if self.correction is not None else None
         return self._build(self.method, self.filter_config, correction, f"filter '{self.filter_name}'")
 
     def _make_fallback_core(self) -> StateEstimator:
-        """``no_speed_filter`` (built once at start-up too, so that a bad config stops the node)."""
+        """``no_speed_filter``."""
         assert self.fallback_method is not None
         return self._build(self.fallback_method, self.fallback_config, None,
                            f"no_speed_filter '{self.no_speed_filter}'")

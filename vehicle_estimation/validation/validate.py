@@ -97,7 +97,7 @@ def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
             continue
         folder = root / f"commonroad{suffix}"
         paths = [folder / f"commonroad_{m}" for m in manoeuvres]
-        if not all(p.exists() for p in paths):
+        if not all(p.exists() for p in paths):      # else made by an earlier group of this run
             paths = commonroad.generate(folder, vibration_std=vibration, manoeuvres=manoeuvres, duration=duration)
         vehicle = folder / f"{commonroad.VEHICLE_NAME}.yaml"
         for name, bag in zip(manoeuvres, paths):
@@ -113,23 +113,16 @@ def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
     except ImportError:
         return []
     try:
-        paths = _fastsim_bags(root / "fastsim", quick=quick)
+        folder = root / "fastsim"
+        paths = [folder / name for name in fastsim_drive.VARIANTS]
+        if not all(p.exists() for p in paths):      # else made by an earlier group of this run
+            paths = fastsim_drive.generate(folder, duration=120.0 if quick else None)
     except ImportError as exc:          # the module is there, the library is not
         print(f"[validate] no FASTSim cases: {exc}")
         return []
-    vehicle = root / "fastsim" / f"{fastsim_drive.VEHICLE_NAME}.yaml"
+    vehicle = folder / f"{fastsim_drive.VEHICLE_NAME}.yaml"
     source = f"NREL FASTSim 3.1.0 ({fastsim_drive.VEHICLE_RESOURCE.removesuffix('.yaml')})"
     return [Case(Path(p).name, source, Path(p), vehicle, ("longitudinal",)) for p in paths]
-
-
-def _fastsim_bags(folder: Path, *, quick: bool) -> list[Path]:
-    """The FASTSim drives in ``folder``, made there unless an earlier group of this run made them."""
-    from vehicle_estimation.validation import fastsim_drive
-
-    paths = [folder / name for name in fastsim_drive.VARIANTS]
-    if all(p.exists() for p in paths):
-        return paths
-    return fastsim_drive.generate(folder, duration=120.0 if quick else None)
 
 
 def _truck_cases(root: Path, *, quick: bool) -> list[Case]:
