@@ -168,10 +168,11 @@ def test_generate_writes_the_three_variants_and_the_vehicle_file(tmp_path):
 def test_cli(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(fd, "generate", lambda out, **kw: calls.append((out, kw)) or [])
-    assert fd.main(["--out", str(tmp_path), "--duration", "30", "--seed", "2",
-                    "--write-params", str(tmp_path / "v.yaml")]) == 0
-    assert calls == [(tmp_path, {"seed": 2, "duration": 30.0})]
-    assert (tmp_path / "v.yaml").read_text(encoding="utf-8") == PARAMS_FILE.read_text(encoding="utf-8")
+    out = tmp_path / "new"      # the params file goes into the --out folder, not made yet
+    assert fd.main(["--out", str(out), "--duration", "30", "--seed", "2",
+                    "--write-params", str(out / "v.yaml")]) == 0
+    assert calls == [(out, {"seed": 2, "duration": 30.0})]
+    assert (out / "v.yaml").read_text(encoding="utf-8") == PARAMS_FILE.read_text(encoding="utf-8")
 
 
 def test_a_short_hilly_fastsim_drive_through_the_nodes(tmp_path):

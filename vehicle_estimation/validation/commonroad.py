@@ -421,6 +421,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
     args = ap.parse_args(argv)
     if args.write_params is not None:
+        args.write_params.parent.mkdir(parents=True, exist_ok=True)   # often the --out folder, made below
         args.write_params.write_text(params_yaml(), encoding="utf-8")
     for path in generate(args.out, vibration_std=args.vibration_std, seed=args.seed,
                          manoeuvres=args.manoeuvre, duration=args.duration):

@@ -171,6 +171,7 @@ def generator_main(argv, module, *, out_help: str) -> int:
     ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
     args = ap.parse_args(argv)
     if args.write_params is not None:
+        args.write_params.parent.mkdir(parents=True, exist_ok=True)   # often the --out folder, made below
         args.write_params.write_text(module.params_yaml(), encoding="utf-8")
     for path in module.generate(args.out, seed=args.seed, duration=args.duration):
         print(path)
