@@ -147,6 +147,37 @@ def test_validate_into_a_used_out_stops_with_a_message(tmp_path, used, cases):
     assert sorted(p.name for p in out.iterdir()) == [used]     # nothing generated
 
 
+def test_commonroad_cases_include_each_clean_drive_without_gnss_and_wheel_speeds(tmp_path, monkeypatch):
+    """The lateral drives also run on the fallbacks: each clean manoeuvre again without
+    ``gnss/fix`` and the wheel joints, every other topic and joint (steering, CAN speed, IMU,
+    truth) as in the drive."""
+    from rosbags.highlevel import AnyReader
+
+    from vehicle_estimation.contract import topics as T
+    from vehicle_estimation.validation import commonroad, validate
+
+    generate = commonroad.generate
+    monkeypatch.setattr(commonroad, "generate", lambda folder, **kw: generate(folder, **{**kw, "duration": 3.0}))
+    cases = {c.name: c for c in validate._commonroad_cases(tmp_path, quick=False)}
+    assert set(cases) == {f"commonroad_{m}{s}" for m in commonroad.MANOEUVRES
+                          for s in ("", "_vib4", "_no_gnss_no_wheels")}
+
+    def contents(bag):
+        with AnyReader([bag]) as reader:
+            counts = {c.topic.lstrip("/"): c.msgcount for c in reader.connections}
+            conn = next(c for c in reader.connections if c.topic.lstrip("/") == T.JOINT_STATES)
+            _, _, raw = next(reader.messages(connections=[conn]))
+            return counts, set(reader.deserialize(raw, conn.msgtype).name)
+
+    for m in commonroad.MANOEUVRES:
+        full, full_joints = contents(cases[f"commonroad_{m}"].bag)
+        fallback, joints = contents(cases[f"commonroad_{m}_no_gnss_no_wheels"].bag)
+        assert T.GNSS in full and set(T.WHEEL_JOINTS) <= full_joints
+        assert fallback == {k: v for k, v in full.items() if k != T.GNSS}
+        assert joints == full_joints - set(T.WHEEL_JOINTS) and joints
+    assert not any("no_gnss" in c.name for c in validate._commonroad_cases(tmp_path / "q", quick=True))
+
+
 def test_a_case_names_its_methods_from_its_own_parameter_layers():
     """The truck cases run twice, the second with the heavy-truck layer: each row must name the
     method that ran, the last layer that sets it winning."""

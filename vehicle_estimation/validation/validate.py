@@ -9,9 +9,10 @@ the baseline's RMSE (below 1: ours is better).
 
 Cases (``--cases``; default: all that can be made here):
 
-* ``commonroad_<manoeuvre>`` and ``commonroad_<manoeuvre>_vib4``: lane change, slalom and step
-  steer of the CommonRoad multi-body BMW 320i (:mod:`.commonroad`), clean and with 4 m/s² of
-  10-60 Hz IMU vibration. Lateral: sideslip and vy against the linear single-track KF
+* ``commonroad_<manoeuvre>``, ``commonroad_<manoeuvre>_vib4`` and
+  ``commonroad_<manoeuvre>_no_gnss_no_wheels``: lane change, slalom and step steer of the
+  CommonRoad multi-body BMW 320i (:mod:`.commonroad`), clean, with 4 m/s² of 10-60 Hz IMU
+  vibration, and clean without GNSS and wheel speeds (the fallbacks). Lateral: sideslip and vy against the linear single-track KF
   (:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`, given the vehicle file's
   cornering stiffnesses and the CAN speed).
 * ``fastsim_hills`` and its variants without GNSS and without wheel speeds, when FASTSim is
@@ -24,7 +25,7 @@ Cases (``--cases``; default: all that can be made here):
 * ``sim_hills``: *our own* simulator's hilly drive, labelled as such: the filters share its
   model, so it is a reference row, not evidence.
 * ``methods``: every method a node offers besides the shipped one (the other state filters on
-  the six CommonRoad drives; the other slope and mass methods on the FASTSim car drive with and
+  the nine CommonRoad drives; the other slope and mass methods on the FASTSim car drive with and
   without GNSS), each as ``<drive>_<method>`` with one parameter layer that selects it, scored
   against the same baselines.
 
@@ -101,10 +102,27 @@ def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
             paths = commonroad.generate(folder, vibration_std=vibration, manoeuvres=manoeuvres, duration=duration)
         vehicle = folder / f"{commonroad.VEHICLE_NAME}.yaml"
         for name, bag in zip(manoeuvres, paths):
-            cases.append(Case(f"commonroad_{name}{suffix}", "CommonRoad MB model 3.0.2 (BMW 320i)", bag,
-                              vehicle, ("lateral",),
+            cases.append(Case(f"commonroad_{name}{suffix}", COMMONROAD_SOURCE, bag, vehicle, ("lateral",),
                               notes=[f"IMU vibration {vibration:g} m/s^2 (10-60 Hz)"] if vibration else []))
+            if not vibration and not quick:
+                cases.append(Case(f"commonroad_{name}_no_gnss_no_wheels", COMMONROAD_SOURCE,
+                                  _without_gnss_and_wheels(bag), vehicle, ("lateral",),
+                                  notes=["no GNSS, no wheel speeds: the fusion dead-reckons, the state node "
+                                         "runs on vehicle/speed"]))
     return cases
+
+
+COMMONROAD_SOURCE = "CommonRoad MB model 3.0.2 (BMW 320i)"
+
+
+def _without_gnss_and_wheels(bag: Path) -> Path:
+    """The drive ``bag`` without ``gnss/fix`` and the wheel speeds, beside it (made once)."""
+    from vehicle_estimation.io.bagtools import rewrite_bag
+
+    out = bag.with_name(f"{bag.name}_no_gnss_no_wheels")
+    if not out.exists():
+        rewrite_bag(bag, out, drop_topics=[T.GNSS], drop_joints=T.WHEEL_JOINTS)
+    return out
 
 
 def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
