@@ -607,10 +607,11 @@ def test_gnss_makes_the_bias_observable_and_drops_the_unaided_prior(drive):
     assert np.nanmin(out["grade_var"][running]) < (cfg.unaided_accel_bias_sigma / G) ** 2
 
 
-def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), **cfg):
+def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), yaw_rate=0.0, **cfg):
     """A filter aligned on level ground whose IMU sits ``pitch`` nose-up in the body (the nominal
-    mounting says level), pulled away at 0.5 m/s^2 to ``top_speed`` on a level road, without
-    GNSS: the vertical constraint sees the body velocity times the mounting error."""
+    mounting says level), pulled away at 0.5 m/s^2 to ``top_speed`` on a level road, turning at
+    ``yaw_rate`` [rad/s] all the while, without GNSS: the vertical constraint sees the body
+    velocity times the mounting error."""
     ekf = FusionEKF(FusionConfig(nh_sigma_z=0.1, estimate_mounting=True, **cfg))
     f_level, w = _static_imu(grade=pitch)
     t = 0.0
@@ -622,8 +623,9 @@ def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), **cfg):
         t_i = t + i * 0.005
         accel = 0.5 if 0.5 * i * 0.005 < top_speed else 0.0
         speed = min(top_speed, 0.5 * i * 0.005)
-        f = f_level + quat_to_rotmat(quat_from_euler(0.0, -pitch, 0.0)).T @ np.array([accel, 0.0, 0.0])
-        ekf.process_imu(t_i, f, w)
+        to_imu = quat_to_rotmat(quat_from_euler(0.0, -pitch, 0.0)).T
+        f = f_level + to_imu @ np.array([accel, yaw_rate * speed, 0.0])
+        ekf.process_imu(t_i, f, w + to_imu @ np.array([0.0, 0.0, yaw_rate]))
         if i % 2 == 0:
             ekf.update_speed(t_i, speed)
     return ekf
@@ -644,3 +646,22 @@ def test_without_gnss_a_crawl_does_not_move_the_mounting():
     assert abs(math.degrees(driving.mounting_rpy[1])) > 0.01
     # what the crawl did not learn stays in the mounting's variance
     assert crawl.mounting_covariance[0, 0] == pytest.approx(crawl.config.p0_mounting_sigma ** 2)
+
+
+def test_without_gnss_a_corner_holds_the_mounting_pitch_and_refines_its_yaw():
+    """In a corner the constraints miss the sideslip and the roll, which nothing pins without
+    GNSS: above ``mounting_max_yaw_rate_without_gnss`` the mounting pitch keeps its value and its
+    variance (its column is out of the constraints), while its yaw is still learnt; with the
+    gate opened the same corner moves the pitch."""
+    cornering = _pull_away(5.0, yaw_rate=0.1)
+    prior = cornering.config.p0_mounting_sigma ** 2
+    assert cornering.mounting_columns() == (False, True) and cornering.mounting_observed()
+    assert cornering.mounting_rpy[1] == 0.0
+    assert cornering.mounting_covariance[0, 0] == pytest.approx(prior)
+    assert cornering.mounting_covariance[1, 1] < 0.8 * prior                # the yaw is learnt
+    ungated = _pull_away(5.0, yaw_rate=0.1, mounting_max_yaw_rate_without_gnss=1.0)
+    assert ungated.mounting_columns() == (True, True)
+    assert abs(math.degrees(ungated.mounting_rpy[1])) > 0.01
+    straight = _pull_away(5.0, yaw_rate=0.01)                             # below the gate
+    assert straight.mounting_columns() == (True, True)
+    assert abs(math.degrees(straight.mounting_rpy[1])) > 0.01

@@ -183,7 +183,8 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
         fusion = params["fusion"]
         if not have_gnss and _truthy(fusion.get("fusion.estimate_mounting", False)):
             lines.append("IMU mounting learnt only from "
-                         f"{float(fusion.get('fusion.mounting_min_speed_without_gnss', 1.0)):g} m/s up")
+                         f"{float(fusion.get('fusion.mounting_min_speed_without_gnss', 1.0)):g} m/s up, "
+                         "its pitch not in corners")
         undriven = UNDRIVEN_WHEELS.get(str(fusion.get("vehicle.driven_axle", "front")), (0, 1, 2, 3))
         wheel_speed = (not have_speed and _truthy(fusion.get("wheel_speed_fallback", True))
                        and all(wheel[topics.WHEEL_JOINTS[i]] for i in undriven))

@@ -263,9 +263,11 @@ class FusionNode(EstimatorNode):
                 "IMU mounting rpy [deg]": np.array2string(np.degrees(ekf.mounting_rpy), precision=3),
             })
             if ekf.config.estimate_mounting:
+                pitch, yaw = ekf.mounting_columns()
                 values["IMU mounting estimation"] = (
                     "GNSS-aided" if ekf.gnss_aided
-                    else "refined by the vehicle constraints (no GNSS)" if ekf.mounting_observed()
+                    else "refined by the vehicle constraints (no GNSS)" if pitch
+                    else "yaw refined, pitch held in a corner (no GNSS)" if yaw
                     else f"held below {ekf.config.mounting_min_speed_without_gnss:g} m/s without GNSS")
         for k, v in getattr(ekf, "rejected", {}).items():
             values[f"filter rejected {k}"] = str(v)

@@ -48,7 +48,7 @@ class FusionCompiledSteps:
     # FusionEKF's methods these steps share with its numpy path:
     _update_process_noise: Callable[[float], None]
     _held_row: Callable[[], int]
-    _mounting_min_speed: Callable[[], float]
+    _mounting_min_speeds: Callable[[], tuple[float, float]]
 
     def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """``_update`` (Eqs. (37)-(44)) by :func:`.ins_kernels.joseph_update` and
@@ -75,7 +75,7 @@ class FusionCompiledSteps:
         c = self.config
         q, R, Rm, P = np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((N_ERR, N_ERR))
         res = ins_kernels.constraint_update(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64), W,
-                                            c.full_velocity_jacobian, self._mounting_min_speed(),
+                                            c.full_velocity_jacobian, *self._mounting_min_speeds(),
                                             c.estimate_mounting, self._held_row(), self._p, self._ba, self._bg,
                                             self._q, self._P, q, R, Rm, P)
         self._take_constraint_outcome(res, q, R, Rm, P)
@@ -92,7 +92,7 @@ class FusionCompiledSteps:
         res = ins_kernels.imu_step(dt, c.stationary_imu_tau_s, self._f_prev, self._w_prev, self._ba, self._bg,
                                    self._g_vec, self._p, self._v, self._q, self._R, self._a_lp, self._w_lp, self._P,
                                    self._qd, _MOVING_ROWS, self._w_nh, c.full_velocity_jacobian,
-                                   self._mounting_min_speed(), c.estimate_mounting, self._held_row(), self._Rm, q, R,
+                                   *self._mounting_min_speeds(), c.estimate_mounting, self._held_row(), self._Rm, q, R,
                                    Rm, P)
         self._q, self._R, self._P = q, R, P      # the propagation, at least
         self._take_constraint_outcome(res, q, R, Rm, P)

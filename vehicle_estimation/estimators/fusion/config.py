@@ -60,10 +60,12 @@ class FusionConfig:
 
     The IMU mounting (``estimate_mounting``) enters the body-velocity constraints as the
     velocity times its angle. Without GNSS it is refined there only from
-    ``mounting_min_speed_without_gnss`` up (:meth:`FusionEKF.mounting_observed`): pulling away,
+    ``mounting_min_speed_without_gnss`` up, and its pitch only while the yaw rate stays below
+    ``mounting_max_yaw_rate_without_gnss`` (:meth:`FusionEKF.mounting_columns`): pulling away,
     the product is smaller than what the constraints' model misses (the body pitching under the
-    first acceleration, the CAN speed's quantisation), and no fix takes back what the mounting
-    learnt from it.
+    first acceleration, the CAN speed's quantisation); in a corner the constraints miss the
+    sideslip and the roll, which no fix pins without GNSS; and no fix takes back what the
+    mounting learnt from either.
     """
 
     gravity: float = setting(GRAVITY, "Gravitational acceleration [m/s^2] (paper uses 9.81, Eq. (27))",
@@ -168,6 +170,10 @@ class FusionConfig:
                                                     "consider state)")
     mounting_min_speed_without_gnss: float = setting(1.0, "Without GNSS the vehicle constraints refine the "
                                                      "mounting only from this speed up [m/s]", low=0.0)
+    mounting_max_yaw_rate_without_gnss: float = setting(
+        0.02, "Without GNSS the vehicle constraints refine the mounting pitch only while the low-passed yaw "
+        "rate stays below this [rad/s]: in a corner the sideslip and the roll that they do not model "
+        "reach them as a mounting pitch", low=0.0, low_open=True)
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""

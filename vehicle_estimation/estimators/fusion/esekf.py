@@ -378,39 +378,24 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             self._qd, self._qd_dt, self._qd_walk = qd, dt, walk
 
     # ------------------------------------------------------------------ measurement helpers
-    def mounting_observed(self) -> bool:
-        """Whether the body-velocity measurements refine the mounting now: with GNSS always,
-        without it only from ``mounting_min_speed_without_gnss`` up.
-
-        The mounting enters them as the body velocity times its angle. Pulling away, that
-        product is millimetres per second, less than what the constraints' model misses there
-        (the body pitching under the first acceleration, the CAN speed's quantisation), and
-        without GNSS nothing takes back what the mounting then learnt: on a 36 t truck without
-        GNSS the mounting pitch took the start's errors and kept them (slope RMSE 0.24 deg, mass
-        11 % low; with the gate 0.12 deg and 5.4 %). The mounting keeps its covariance and its
-        correlations below that speed, so what other states learn still reaches it.
-        """
-        v, s = self._v, self._mounting_min_speed()
-        return bool(self.config.estimate_mounting and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] >= s * s)
-
-    def _mounting_min_speed(self) -> float:
-        return 0.0 if self.gnss_aided else self.config.mounting_min_speed_without_gnss
-
-    def _body_speed_rows(self, rows, mounting_columns: bool | None = None) -> tuple:
+    def _body_speed_rows(self, rows, mounting_columns: "tuple[bool, bool] | bool | None" = None) -> tuple:
         """Prediction v_b[rows] = (R_m R^T v)[rows] in base_link and its Jacobian H (Eq. (46)).
 
         With R_true = (I - S(eps)) R_hat:  v_i = R^T v - R^T S(v) eps  (the attitude
         term is dropped when ``full_velocity_jacobian`` is False, as in Eq. (46)); the
         mounting R_m (imu_link -> base_link) with R_m,true = R_m (I + S(dm)) adds
-        v_b = R_m v_i - R_m S(v_i) dm (``mounting_columns``; by default while
-        :meth:`mounting_observed`).
+        v_b = R_m v_i - R_m S(v_i) dm (``mounting_columns``: the pitch's and the yaw's, or one
+        flag for both; by default :meth:`mounting_columns`).
         """
         if mounting_columns is None:
-            mounting_columns = self.mounting_observed()
+            mounting_columns = self.mounting_columns()
+        elif isinstance(mounting_columns, bool):
+            mounting_columns = (mounting_columns, mounting_columns)
+        pitch, yaw = mounting_columns
         if self.compiled:
             pred, H = np.empty(len(rows)), np.empty((len(rows), N_ERR))
             ins_kernels.body_speed_rows(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64),
-                                        self.config.full_velocity_jacobian, mounting_columns, pred, H)
+                                        self.config.full_velocity_jacobian, pitch, yaw, pred, H)
             return pred, H
         Rt = self._R.T
         Rm = self._Rm
@@ -421,8 +406,8 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         H[:, IV:IV + 3] = RmRt[rows]
         if self.config.full_velocity_jacobian:
             H[:, IA:IA + 3] = -(RmRt[rows] @ skew(self._v))
-        if mounting_columns:
-            H[:, IM:IM + 2] = -(Rm[rows] @ skew(vi))[:, 1:3]
+        if pitch or yaw:
+            H[:, IM:IM + 2] = -(Rm[rows] @ skew(vi))[:, 1:3] * np.array([float(pitch), float(yaw)])
         return vb[rows], H
 
     def _nh_update(self, t: float) -> None:

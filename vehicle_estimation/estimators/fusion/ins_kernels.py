@@ -109,9 +109,10 @@ def propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P,
 
 
 @kernel
-def body_speed_rows(R, Rm, v, rows, full_jacobian, mounting, pred, H):
+def body_speed_rows(R, Rm, v, rows, full_jacobian, mounting_pitch, mounting_yaw, pred, H):
     """Eq. (46): ``pred = (R_m R^T v)[rows]`` and its Jacobian ``H`` (attitude columns with
-    ``full_jacobian``, mounting columns with ``mounting``)."""
+    ``full_jacobian``, the mounting pitch's and yaw's columns with ``mounting_pitch`` and
+    ``mounting_yaw``)."""
     RmRt = np.empty((3, 3))
     vi = np.empty(3)
     for i in range(3):
@@ -128,9 +129,10 @@ def body_speed_rows(R, Rm, v, rows, full_jacobian, mounting, pred, H):
             H[k, _IA] = -(a1 * v[2] - a2 * v[1])
             H[k, _IA + 1] = -(-a0 * v[2] + a2 * v[0])
             H[k, _IA + 2] = -(a0 * v[1] - a1 * v[0])
-        if mounting:        # -(Rm[r] @ S(vi))[1:3]
-            m0, m1, m2 = Rm[r, 0], Rm[r, 1], Rm[r, 2]
+        m0, m1, m2 = Rm[r, 0], Rm[r, 1], Rm[r, 2]   # -(Rm[r] @ S(vi))[1:3]
+        if mounting_pitch:
             H[k, _IM] = -(-m0 * vi[2] + m2 * vi[0])
+        if mounting_yaw:
             H[k, _IM + 1] = -(m0 * vi[1] - m1 * vi[0])
 
 
@@ -241,17 +243,19 @@ def inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out):
 
 
 @kernel
-def constraint_update(R, Rm, v, rows, W, full_jacobian, mounting_min_speed, mounting, hold_row, p, ba, bg, q, P,
-                      q_out, R_out, Rm_out, P_out):
+def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting, hold_row, p, ba,
+                      bg, q, P, q_out, R_out, Rm_out, P_out):
     """The non-holonomic / standstill update (Eqs. (45)-(47), rows (3)) in one call: the body
-    velocity ``rows`` should be zero, with noise ``W``: :func:`body_speed_rows` (mounting
-    columns with ``mounting`` from a speed of ``mounting_min_speed`` up), then
+    velocity ``rows`` should be zero, with noise ``W``: :func:`body_speed_rows` (with
+    ``mounting``, the mounting pitch's column from a speed of ``pitch_min_speed`` up, the yaw's
+    from ``yaw_min_speed``; infinite: none), then
     :func:`joseph_update` (no gate) and :func:`inject`. Returns the update's outcome; unless
     ``UPDATE_APPLIED``, nothing is written."""
     k, n = rows.shape[0], P.shape[0]
     pred, H, dz = np.empty(k), np.empty((k, n)), np.empty(n)
-    observed = mounting and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] >= mounting_min_speed * mounting_min_speed
-    body_speed_rows(R, Rm, v, rows, full_jacobian, observed, pred, H)
+    speed_sq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    body_speed_rows(R, Rm, v, rows, full_jacobian, mounting and speed_sq >= pitch_min_speed * pitch_min_speed,
+                    mounting and speed_sq >= yaw_min_speed * yaw_min_speed, pred, H)
     outcome = joseph_update(P, H, W, -pred, 0.0, False, hold_row, P_out, dz)
     if outcome == UPDATE_APPLIED:
         inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out)
@@ -260,15 +264,15 @@ def constraint_update(R, Rm, v, rows, W, full_jacobian, mounting_min_speed, moun
 
 @kernel
 def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, rows, W, full_jacobian,
-             mounting_min_speed, mounting, hold_row, Rm, q_out, R_out, Rm_out, P_out):
+             pitch_min_speed, yaw_min_speed, mounting, hold_row, Rm, q_out, R_out, Rm_out, P_out):
     """:func:`propagate`, then :func:`constraint_update` at the propagated state: one IMU sample
     of a moving vehicle. The outputs hold the propagation where the update is not applied
     (its outcome is returned)."""
     n = P.shape[0]
     q1, R1, P1 = np.empty(4), np.empty((3, 3)), np.empty((n, n))
     propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, q1, R1, P1)
-    outcome = constraint_update(R1, Rm, v, rows, W, full_jacobian, mounting_min_speed, mounting, hold_row, p, ba,
-                                bg, q1, P1, q_out, R_out, Rm_out, P_out)
+    outcome = constraint_update(R1, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting,
+                                hold_row, p, ba, bg, q1, P1, q_out, R_out, Rm_out, P_out)
     if outcome != UPDATE_APPLIED:
         q_out[:] = q1
         R_out[:, :] = R1
@@ -290,13 +294,13 @@ def warm_up(n: int = 17) -> None:
     propagate(0.01, 1.0, v3, v3, v3.copy(), v3.copy(), v3, v3.copy(), v3.copy(), q, R, v3.copy(), v3.copy(), P,
               np.zeros(n), np.empty(4), np.empty((3, 3)), np.empty((n, n)))
     H = np.zeros((2, n))
-    body_speed_rows(R, R, v3, np.array([1, 2], dtype=np.int64), True, True, np.empty(2), H)
+    body_speed_rows(R, R, v3, np.array([1, 2], dtype=np.int64), True, True, True, np.empty(2), H)
     dz = np.zeros(n)
     joseph_update(P, H, np.eye(2), np.zeros(2), 1.0, True, -1, np.empty((n, n)), dz)
     inject(dz, v3.copy(), v3.copy(), q, v3.copy(), v3.copy(), R, True, np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
-    constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, True, -1, v3.copy(),
+    constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, -1, v3.copy(),
                       v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
     imu_step(0.01, 1.0, v3, v3, v3.copy(), v3.copy(), v3, v3.copy(), v3.copy(), q, R, v3.copy(), v3.copy(), P,
-             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, True, -1, R, np.empty(4),
+             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, -1, R, np.empty(4),
              np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
     _warm = True
