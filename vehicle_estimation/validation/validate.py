@@ -12,7 +12,8 @@ Cases (``--cases``; default: all that can be made here):
 * ``commonroad_<manoeuvre>``, ``commonroad_<manoeuvre>_vib4`` and
   ``commonroad_<manoeuvre>_no_gnss_no_wheels``: lane change, slalom and step steer of the
   CommonRoad multi-body BMW 320i (:mod:`.commonroad`), clean, with 4 m/s² of 10-60 Hz IMU
-  vibration, and clean without GNSS and wheel speeds (the fallbacks). Lateral: sideslip and vy against the linear single-track KF
+  vibration, and clean without GNSS and wheel speeds (the fallbacks). Lateral: sideslip and vy
+  against the linear single-track KF
   (:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`, given the vehicle file's
   cornering stiffnesses and the CAN speed).
 * ``fastsim_hills`` and its variants without GNSS and without wheel speeds, when FASTSim is
@@ -68,6 +69,7 @@ DEFAULT_OUT = Path("out") / "validate"
 WARMUP_S = 5.0
 #: The mass is scored over the last half of the drive, as every mass figure of this package.
 MASS_FROM_FRACTION = 0.5
+COMMONROAD_SOURCE = "CommonRoad MB model 3.0.2 (BMW 320i)"
 
 
 @dataclass
@@ -110,9 +112,6 @@ def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
                                   notes=["no GNSS, no wheel speeds: the fusion dead-reckons, the state node "
                                          "runs on vehicle/speed"]))
     return cases
-
-
-COMMONROAD_SOURCE = "CommonRoad MB model 3.0.2 (BMW 320i)"
 
 
 def _without_gnss_and_wheels(bag: Path) -> Path:
