@@ -619,11 +619,11 @@ def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), yaw_rate=0.0, *
         t = i * 0.005
         ekf.update_speed(t, 0.0)
         ekf.process_imu(t, f_level, w)
+    to_imu = quat_to_rotmat(quat_from_euler(0.0, -pitch, 0.0)).T
     for i in range(1, int(seconds / 0.005) + 1):
         t_i = t + i * 0.005
         accel = 0.5 if 0.5 * i * 0.005 < top_speed else 0.0
         speed = min(top_speed, 0.5 * i * 0.005)
-        to_imu = quat_to_rotmat(quat_from_euler(0.0, -pitch, 0.0)).T
         f = f_level + to_imu @ np.array([accel, yaw_rate * speed, 0.0])
         ekf.process_imu(t_i, f, w + to_imu @ np.array([0.0, 0.0, yaw_rate]))
         if i % 2 == 0:
@@ -636,13 +636,13 @@ def test_without_gnss_a_crawl_does_not_move_the_mounting():
     crawl leaves the mounting where the alignment put it (its errors go to the attitude, which
     GNSS or faster driving corrects later); from that speed up the mounting is learnt."""
     crawl = _pull_away(0.8)
-    assert not crawl.gnss_aided and not crawl.mounting_observed()
+    assert not crawl.gnss_aided and crawl.mounting_columns() == (False, False)
     np.testing.assert_array_equal(crawl.mounting_rpy, 0.0)
     ungated = _pull_away(0.8, mounting_min_speed_without_gnss=0.0)
-    assert ungated.mounting_observed()
+    assert ungated.mounting_columns() == (True, True)
     assert abs(math.degrees(ungated.mounting_rpy[1])) > 0.01          # without the gate it moves
     driving = _pull_away(3.0)
-    assert driving.mounting_observed()
+    assert driving.mounting_columns() == (True, True)
     assert abs(math.degrees(driving.mounting_rpy[1])) > 0.01
     # what the crawl did not learn stays in the mounting's variance
     assert crawl.mounting_covariance[0, 0] == pytest.approx(crawl.config.p0_mounting_sigma ** 2)
@@ -655,7 +655,7 @@ def test_without_gnss_a_corner_holds_the_mounting_pitch_and_refines_its_yaw():
     gate opened the same corner moves the pitch."""
     cornering = _pull_away(5.0, yaw_rate=0.1)
     prior = cornering.config.p0_mounting_sigma ** 2
-    assert cornering.mounting_columns() == (False, True) and cornering.mounting_observed()
+    assert cornering.mounting_columns() == (False, True)
     assert cornering.mounting_rpy[1] == 0.0
     assert cornering.mounting_covariance[0, 0] == pytest.approx(prior)
     assert cornering.mounting_covariance[1, 1] < 0.8 * prior                # the yaw is learnt

@@ -378,20 +378,16 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             self._qd, self._qd_dt, self._qd_walk = qd, dt, walk
 
     # ------------------------------------------------------------------ measurement helpers
-    def _body_speed_rows(self, rows, mounting_columns: "tuple[bool, bool] | bool | None" = None) -> tuple:
+    def _body_speed_rows(self, rows, mounting_columns: tuple[bool, bool] | None = None) -> tuple:
         """Prediction v_b[rows] = (R_m R^T v)[rows] in base_link and its Jacobian H (Eq. (46)).
 
         With R_true = (I - S(eps)) R_hat:  v_i = R^T v - R^T S(v) eps  (the attitude
         term is dropped when ``full_velocity_jacobian`` is False, as in Eq. (46)); the
         mounting R_m (imu_link -> base_link) with R_m,true = R_m (I + S(dm)) adds
-        v_b = R_m v_i - R_m S(v_i) dm (``mounting_columns``: the pitch's and the yaw's, or one
-        flag for both; by default :meth:`mounting_columns`).
+        v_b = R_m v_i - R_m S(v_i) dm (``mounting_columns``: the pitch's and the yaw's; by
+        default :meth:`mounting_columns`).
         """
-        if mounting_columns is None:
-            mounting_columns = self.mounting_columns()
-        elif isinstance(mounting_columns, bool):
-            mounting_columns = (mounting_columns, mounting_columns)
-        pitch, yaw = mounting_columns
+        pitch, yaw = self.mounting_columns() if mounting_columns is None else mounting_columns
         if self.compiled:
             pred, H = np.empty(len(rows)), np.empty((len(rows), N_ERR))
             ins_kernels.body_speed_rows(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64),
@@ -407,7 +403,11 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         if self.config.full_velocity_jacobian:
             H[:, IA:IA + 3] = -(RmRt[rows] @ skew(self._v))
         if pitch or yaw:
-            H[:, IM:IM + 2] = -(Rm[rows] @ skew(vi))[:, 1:3] * np.array([float(pitch), float(yaw)])
+            mounting = -(Rm[rows] @ skew(vi))[:, 1:3]
+            if pitch:
+                H[:, IM] = mounting[:, 0]
+            if yaw:
+                H[:, IM + 1] = mounting[:, 1]
         return vb[rows], H
 
     def _nh_update(self, t: float) -> None:

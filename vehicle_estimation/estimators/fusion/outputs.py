@@ -99,10 +99,6 @@ class FusionOutputs:
         pitch, yaw = self._mounting_min_speeds()
         return bool(speed_sq >= pitch * pitch), bool(speed_sq >= yaw * yaw)
 
-    def mounting_observed(self) -> bool:
-        """Whether the body-velocity measurements refine the mounting (either angle) now."""
-        return any(self.mounting_columns())
-
     def _mounting_min_speeds(self) -> tuple[float, float]:
         """The speeds from which the constraints refine the mounting pitch and yaw now
         (:meth:`mounting_columns`); infinite: not at all (so the compiled kernels gate alike)."""
@@ -167,7 +163,7 @@ class FusionOutputs:
         variance is not published below the speed's own stated variance. (The filter weighs that
         speed as correlated over ``speed_error_correlation_s`` and computed 0.045 m/s on FASTSim's
         car without GNSS, where a 1 km/h step leaves 0.07 m/s: NEES 2.5.)"""
-        _, H = self._body_speed_rows([0, 1, 2], self.config.estimate_mounting)
+        _, H = self._body_speed_rows([0, 1, 2], (self.config.estimate_mounting,) * 2)
         cov = H @ self._P @ H.T
         if self._speed_variance is not None and not self.gnss_aided and cov[0, 0] < self._speed_variance:
             cov[0, 0] = self._speed_variance
