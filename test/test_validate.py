@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -86,12 +87,20 @@ def test_validate_command_end_to_end(tmp_path):
     """A CommonRoad lane change (lateral) and our short hilly drive (longitudinal) through the
     nodes: every row has our figures, the baseline's and the ratio; plots and JSON written."""
     out = tmp_path / "validate"
+    # a user's layer (--params) reaches every node of every case: here one that only doubles
+    # the /diagnostics rate, so every figure below is the shipped params' own
+    layer = tmp_path / "diagnostics_twice.yaml"
+    layer.write_text("/**:\n  ros__parameters:\n    diagnostics_period_s: 0.5\n", encoding="utf-8")
     proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "validate", "--quick", "--cases",
-                           "commonroad,sim", "--out", str(out), "--quiet"],
+                           "commonroad,sim", "--out", str(out), "--params", str(layer), "--quiet"],
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     result = json.loads((out / "validation.json").read_text())
     assert all(c["lossless"] for c in result["cases"])
+    assert result["layers"] == [str(layer)] and f"then {layer} in every case" in proc.stdout
+    assert all(c["params"] == ["estimation", str(layer)] for c in result["cases"]), result["cases"]
+    duration = 14.0     # the quick lane change
+    assert len(diagnostic_statuses(out / "runs" / "commonroad_dlc" / "estimates", "vehicle_state")) > 1.5 * duration
     rows = {(r["case"], r["quantity"]): r for r in result["rows"]}
     for key in (("commonroad_dlc", "sideslip"), ("commonroad_dlc", "vy"), ("sim_hills", "slope"),
                 ("sim_hills", "mass (last half)")):
@@ -130,6 +139,44 @@ def test_validate_command_end_to_end(tmp_path):
                             "sim", "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
     assert again.returncode == 2 and "Traceback" not in again.stderr, again.stderr
     assert "exists" in again.stderr and "choose another --out" in again.stderr
+
+
+def test_a_params_layer_sits_over_the_shipped_params_and_under_each_case_layer(tmp_path, monkeypatch):
+    """``validate --params``: every case's nodes read estimation.yaml, then the user's layers in
+    order, then the case's own layer (a method case's method), which therefore still decides
+    what the case's row names; a layer that does not exist stops the run before anything is made."""
+    from vehicle_estimation.launcher import replay as replay_module
+    from vehicle_estimation.validation import validate
+
+    plain = validate.Case("cr", "s", tmp_path / "cr", params_file("commonroad_bmw320i"), ("lateral",))
+    method_layer = tmp_path / "method.yaml"
+    method_layer.write_text("vehicle_state:\n  ros__parameters:\n    filter: ckf\n", encoding="utf-8")
+    method = validate.Case("cr_ckf", "s", tmp_path / "cr", params_file("commonroad_bmw320i"), ("lateral",),
+                           params=("estimation", str(method_layer)), node="vehicle_state")
+    mine = [tmp_path / "a.yaml", tmp_path / "b.yaml"]
+    for path, rate in zip(mine, (20.0, 25.0)):
+        path.write_text(f"vehicle_state:\n  ros__parameters:\n    publish_rate_hz: {rate}\n", encoding="utf-8")
+    seen = []
+
+    def node_group(files, overrides, log_dir):
+        seen.append([Path(f) for f in files])
+        raise replay_module.ReplayError("stopped by the test")
+
+    def replay(bag, estimates, make_nodes, progress=True):
+        make_nodes({})
+
+    monkeypatch.setattr(replay_module, "replay", replay)
+    for n, case in enumerate((plain, method)):
+        monkeypatch.setitem(validate.CASE_BUILDERS, "one", lambda root, quick, case=case: [case])
+        with pytest.raises(RuntimeError, match="stopped by the test"):
+            validate.run(tmp_path / f"out{n}", node_group, cases=["one"], progress=False,
+                         params=[str(p) for p in mine])
+    vehicle, shipped = params_file("commonroad_bmw320i"), params_file("estimation")
+    assert seen == [[vehicle, shipped, *mine], [vehicle, shipped, *mine, method_layer]]
+    assert validate._shipped_methods(tuple(map(str, seen[1][1:])))["vehicle_state"] == "ckf"
+    with pytest.raises(FileNotFoundError, match="nowhere.yaml"):
+        validate.run(tmp_path / "out2", node_group, cases=["one"], progress=False, params=["nowhere.yaml"])
+    assert not (tmp_path / "out2").exists()
 
 
 @pytest.mark.parametrize(("cases", "used"), [("commonroad", "bags"), ("fastsim", "runs"), ("sim", "runs"),

@@ -296,7 +296,7 @@ def test_real_drive_without_speed_keeps_vy_within_1_m_s(tmp_path):
     drive's vy errors reach 1.35 m/s; without both, the vibrating one's 1.5 m/s."""
     from vehicle_estimation.paths import params_file, shared_data_dir
     from vehicle_estimation.sim.noise import band_limited_noise
-    from vehicle_estimation.validation import lateral, stanford
+    from vehicle_estimation.validation import baselines, lateral, stanford
     if not (shared_data_dir(stanford.MAPPING) / "t.txt").is_file():
         pytest.skip("Stanford data not available")
     pytest.importorskip("rosbags")
@@ -312,8 +312,8 @@ def test_real_drive_without_speed_keeps_vy_within_1_m_s(tmp_path):
         fs = 1.0 / float(np.median(np.diff(imu["t"])))
         if vibration:
             imu["f"] = imu["f"] + band_limited_noise(np.random.default_rng(0), imu["t"].size, fs, vibration)
-        r_diag = [stanford.highpass_std(imu["f"][:, 0]) ** 2, stanford.highpass_std(imu["f"][:, 1]) ** 2,
-                  stanford.highpass_std(imu["w"][:, 2]) ** 2]
+        r_diag = [baselines.highpass_std(imu["f"][:, 0]) ** 2, baselines.highpass_std(imu["f"][:, 1]) ** 2,
+                  baselines.highpass_std(imu["w"][:, 2]) ** 2]
         node = {"r_diag": r_diag, "initial_vx": float(truth["vx"][0]), "missing_slope_std_deg": 0.0}
         est = lateral.run_core("vbackf", drive, vehicle, use_wheels=True, roll="none", overrides={**node, **overrides})
         after = est["t"] >= est["t"][0] + 5.0

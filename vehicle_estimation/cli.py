@@ -19,6 +19,7 @@ Subcommands::
     vehicle-estimation stanford [--out DIR]             real Stanford drive: state filters vs
                                                         the linear single-track KF baseline
     vehicle-estimation validate [--out DIR] [--cases commonroad,fastsim,truck,sim] [--quick]
+                          [--params FILE ...]
                                                         every estimator vs a textbook baseline,
                                                         on drives our simulator did not make
     vehicle-estimation params [--write|--check README.md] the parameter reference of every node

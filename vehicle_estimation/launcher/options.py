@@ -34,6 +34,14 @@ def add_params_options(p: argparse.ArgumentParser) -> None:
                         "layer files, a later file overriding an earlier one")
 
 
+def add_tuning_option(p: argparse.ArgumentParser, below: str) -> None:
+    """``--params`` of a comparison (``validate``, ``stanford``): files layered over
+    ``estimation.yaml`` in every replay, below the comparison's own layer (``below``)."""
+    p.add_argument("--params", action="append", default=[], metavar="FILE",
+                   help=f"params file or name in params/ layered over estimation.yaml in every replay, below {below}; "
+                        "repeat to layer files: a tuning scored beside the same baselines")
+
+
 def add_namespace_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default="/", help="ROS namespace of every node (default: /)")
 

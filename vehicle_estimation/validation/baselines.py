@@ -1,4 +1,4 @@
-"""Textbook baselines for the longitudinal estimators, run offline on a bag's arrays.
+"""Textbook baselines for the estimators, run offline on a bag's arrays.
 
 Every figure of ``validate`` is a ratio to one of these, computed in the same run on the same
 data, so that a number says how much better (or worse) than the obvious method an estimator is:
@@ -14,9 +14,11 @@ data, so that a number says how much better (or worse) than the obvious method a
   published slope, it says how much of our mass error the slope causes. Samples whose residual
   is an outlier (braking while a drive force is still reported) are trimmed and the fit redone.
 
-The vehicle's lateral baseline (a linear single-track KF) is
-:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`. The fusion's and the state's
-motion outputs are held against the raw sensors they start from:
+* :func:`baseline_linear_kf`: the lateral baseline, the linear single-track KF of the Stanford
+  data's source repository (``vehicle-estimation stanford``), given the vehicle file's
+  cornering stiffnesses and a speed; its R from the high-passed signals (:func:`highpass_std`).
+
+The fusion's and the state's motion outputs are held against the raw sensors they start from:
 
 * :func:`kinematic_roll`: the roll from the accelerometer, ``phi = asin((f_y - v r) / g)`` (the
   lateral specific force less the centripetal acceleration is the gravity across the car),
@@ -143,3 +145,42 @@ def batch_ls_mass(force_t: np.ndarray, drive_force: np.ndarray, speed_t: np.ndar
         mass = float(np.sum(phi[keep] * y[keep]) / np.sum(phi[keep] ** 2))
         use = keep
     return {"mass": mass, "samples": int(use.sum())}
+
+
+def highpass_std(x: np.ndarray) -> float:
+    """Std of the high-passed signal, as BetaStanfordLinear.m estimates sensor noise.
+
+    The source designs ``fdesign.highpass('Fst,Fp,Ast,Ap', 0.15, 0.25, 60, 1)`` (equiripple,
+    normalised to Nyquist: stop below 7.5 Hz, pass above 12.5 Hz at 100 Hz) and applies it
+    causally with ``filter``; here a Kaiser-window FIR with the same band edges and 60 dB.
+    """
+    numtaps, beta = signal.kaiserord(60.0, 0.10)
+    taps = signal.firwin(numtaps | 1, 0.20, window=("kaiser", beta), pass_zero=False)
+    return float(np.std(signal.lfilter(taps, 1.0, np.asarray(x, dtype=float))))
+
+
+def baseline_linear_kf(t, ay, yaw_rate, delta, vx, *, m, lf, lr, iz, cf, cr) -> tuple[np.ndarray, np.ndarray]:
+    """Linear single-track KF of MBDS/sideslip-angle-vehicle-estimation (estimators/matlab_kf).
+
+    State [beta, r]; Euler-discretised bicycle model with the road-wheel angle as input and
+    the (reference) speed vx as a known parameter; measurement [ay, r]. As the source: Q is
+    the steering noise variance (std of the high-passed steering angle, times 1000 as in
+    the source) through B, R = diag(noise of ay, r) from the high-passed signals,
+    x0 = 0, P0 = 1e4 I; A uses vx(i-1), C uses vx(i). Returns (beta, r) per sample.
+    """
+    s_ay, s_r, s_d = highpass_std(ay), highpass_std(yaw_rate), highpass_std(delta) * 1000.0
+    R = np.diag([s_ay ** 2, s_r ** 2])
+    x, P = np.zeros(2), np.diag([1e4, 1e4])
+    out = np.zeros((len(t), 2))
+    for i in range(1, len(t)):
+        dt, u0, u1 = t[i] - t[i - 1], vx[i - 1], vx[i]
+        A = np.array([[1 - dt * (cf + cr) / (m * u0), -dt * (1 + (lf * cf - lr * cr) / (m * u0 ** 2))],
+                      [-dt * (lf * cf - lr * cr) / iz, 1 - dt * (lf ** 2 * cf + lr ** 2 * cr) / (iz * u0)]])
+        B = dt * np.array([cf / (m * u0), lf * cf / iz])
+        C = np.array([[-(cf + cr) / m, -(lf * cf - lr * cr) / (m * u1)], [0.0, 1.0]])
+        D = np.array([cf / m, 0.0])
+        x, P = A @ x + B * delta[i - 1], A @ P @ A.T + np.outer(B, B) * s_d ** 2       # predict
+        K = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)                                    # correct
+        x, P = x + K @ (np.array([ay[i], yaw_rate[i]]) - C @ x - D * delta[i]), (np.eye(2) - K @ C) @ P
+        out[i] = x
+    return out[:, 0], out[:, 1]

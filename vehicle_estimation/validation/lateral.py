@@ -3,7 +3,7 @@
 :func:`compare_state_filters` reads a bag of :mod:`.commonroad` (or any bag with the topic
 contract and ground truth), and runs, without ROS:
 
-* the baseline :func:`vehicle_estimation.validation.stanford.baseline_linear_kf` (its ``cf``/``cr``
+* the baseline :func:`vehicle_estimation.validation.baselines.baseline_linear_kf` (its ``cf``/``cr``
   are per *axle*: 2 x the per-tyre ``VehicleParams`` values, as ``validation.stanford`` passes them),
   fed with the IMU ay and yaw rate (averaged to 100 Hz, as the state node does), the road-wheel
   angle (steering wheel / ``steering_ratio``) and the CAN speed (zero-order hold);
@@ -50,7 +50,7 @@ from vehicle_estimation.estimators.state.core import (
     DEFAULT_CORNERING_ACCEL_STD, DEFAULT_CORNERING_MIN_YAW_RATE, CorneringSpeed, RollAccelerationTerm)
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.evaluation import metrics
-from vehicle_estimation.validation.stanford import baseline_linear_kf
+from vehicle_estimation.validation.baselines import baseline_linear_kf
 from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params, merge_ros_parameters
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.estimators.common.guard import STAMP_TOLERANCE_S

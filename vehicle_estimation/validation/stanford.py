@@ -3,7 +3,7 @@
 Usage::
 
     vehicle-estimation stanford [--out DIR] [--data-dir DIR] [--filters ckf,vbackf,aoukf] [--speed none,ref]
-                                [--noise data|paper] [--rows N] [--wheel-dropout FROM:TO] [--quiet]
+                                [--noise data|paper] [--rows N] [--wheel-dropout FROM:TO] [--params FILE ...] [--quiet]
 
 1. Imports the real drive of ``../shared/data/stanford_sideslip_2014`` beside the repository
    (``--data-dir`` gives another place; 550 s at 100 Hz,
@@ -22,7 +22,8 @@ Usage::
    params file that selects the filter (:data:`FILTERS`: add a filter there).
 3. Runs the baseline, the linear single-track Kalman filter of the data's source repository
    (MBDS/sideslip-angle-vehicle-estimation, ``estimators/matlab_kf/BetaStanfordLinear.m`` and
-   ``LinearKF.m``), re-implemented in :func:`baseline_linear_kf`.
+   ``LinearKF.m``), re-implemented in
+   :func:`vehicle_estimation.validation.baselines.baseline_linear_kf`.
 4. Prints MAE and RMSE of sideslip, vy and yaw rate against the reference (and vx, and the
    sideslip RMSE change against the baseline), writes ``comparison.json`` and
    ``comparison.png`` into ``--out`` (default ``out/stanford``).
@@ -50,14 +51,15 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.evaluation.report import json_safe
-from vehicle_estimation.launcher.options import add_namespace_option, node_group_factory
+from vehicle_estimation.launcher.options import add_namespace_option, add_tuning_option, node_group_factory
+from vehicle_estimation.validation.baselines import baseline_linear_kf, highpass_std
 
 MAPPING = "stanford_sideslip_2014"
 VEHICLE = "stanford_2014"
@@ -134,47 +136,6 @@ def _drop_wheel_speeds(bag: Path, window: tuple[float, float], progress: bool) -
     if progress:
         print(f"[wheel dropout] {dropped}: wheel speeds NaN from {window[0]:.2f} to {window[1]:.2f} s")
     return dropped
-
-
-# --------------------------------------------------------------------- baseline
-def highpass_std(x: np.ndarray) -> float:
-    """Std of the high-passed signal, as BetaStanfordLinear.m estimates sensor noise.
-
-    The source designs ``fdesign.highpass('Fst,Fp,Ast,Ap', 0.15, 0.25, 60, 1)`` (equiripple,
-    normalised to Nyquist: stop below 7.5 Hz, pass above 12.5 Hz at 100 Hz) and applies it
-    causally with ``filter``; here a Kaiser-window FIR with the same band edges and 60 dB.
-    """
-    from scipy import signal
-    numtaps, beta = signal.kaiserord(60.0, 0.10)
-    taps = signal.firwin(numtaps | 1, 0.20, window=("kaiser", beta), pass_zero=False)
-    return float(np.std(signal.lfilter(taps, 1.0, np.asarray(x, dtype=float))))
-
-
-def baseline_linear_kf(t, ay, yaw_rate, delta, vx, *, m, lf, lr, iz, cf, cr) -> tuple[np.ndarray, np.ndarray]:
-    """Linear single-track KF of MBDS/sideslip-angle-vehicle-estimation (estimators/matlab_kf).
-
-    State [beta, r]; Euler-discretised bicycle model with the road-wheel angle as input and
-    the (reference) speed vx as a known parameter; measurement [ay, r]. As the source: Q is
-    the steering noise variance (std of the high-passed steering angle, times 1000 as in
-    the source) through B, R = diag(noise of ay, r) from the high-passed signals,
-    x0 = 0, P0 = 1e4 I; A uses vx(i-1), C uses vx(i). Returns (beta, r) per sample.
-    """
-    s_ay, s_r, s_d = highpass_std(ay), highpass_std(yaw_rate), highpass_std(delta) * 1000.0
-    R = np.diag([s_ay ** 2, s_r ** 2])
-    x, P = np.zeros(2), np.diag([1e4, 1e4])
-    out = np.zeros((len(t), 2))
-    for i in range(1, len(t)):
-        dt, u0, u1 = t[i] - t[i - 1], vx[i - 1], vx[i]
-        A = np.array([[1 - dt * (cf + cr) / (m * u0), -dt * (1 + (lf * cf - lr * cr) / (m * u0 ** 2))],
-                      [-dt * (lf * cf - lr * cr) / iz, 1 - dt * (lf ** 2 * cf + lr ** 2 * cr) / (iz * u0)]])
-        B = dt * np.array([cf / (m * u0), lf * cf / iz])
-        C = np.array([[-(cf + cr) / m, -(lf * cf - lr * cr) / (m * u1)], [0.0, 1.0]])
-        D = np.array([cf / m, 0.0])
-        x, P = A @ x + B * delta[i - 1], A @ P @ A.T + np.outer(B, B) * s_d ** 2       # predict
-        K = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)                                    # correct
-        x, P = x + K @ (np.array([ay[i], yaw_rate[i]]) - C @ x - D * delta[i]), (np.eye(2) - K @ C) @ P
-        out[i] = x
-    return out[:, 0], out[:, 1]
 
 
 # --------------------------------------------------------------------- metrics
@@ -279,7 +240,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
         filters: list[str] | None = None, speeds: list[str] | None = None, noise: str = "data",
         rows: int | None = None, warmup_s: float = DEFAULT_WARMUP_S, progress: bool = True,
         vibration_std: float = 0.0, vibration_seed: int = 0,
-        wheel_dropout: tuple[float, float] | None = None) -> dict:
+        wheel_dropout: tuple[float, float] | None = None, params: Sequence[str | Path] = ()) -> dict:
     """The whole comparison; returns the content of ``comparison.json``.
 
     ``vibration_std`` > 0 adds band-limited vibration (10-60 Hz, below 45 Hz at this log's
@@ -289,6 +250,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     ``wheel_dropout`` (from, to) [s after the drive's start] makes the ``ref`` bag's wheel speeds
     NaN over that stretch; each row then has ``dropout_metrics`` over it too.
 
+    ``params``: files (or names under params/) layered over ``estimation.yaml`` in every replay,
+    below the comparison's own layer (the filter, and the noise it sets).
     ``node_group(params_files, overrides, log_dir)`` builds the node processes (see
     :func:`main`); ``params_files`` are the layers after the vehicle file.
     """
@@ -296,6 +259,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     from vehicle_estimation.io import import_map
     from vehicle_estimation.launcher.replay import ReplayError, print_stats, replay
     from vehicle_estimation.contract.vehicle import load_vehicle_params
+    layers = [params_file(name) for name in params]
 
     filters = filters or list(FILTERS)
     speeds = speeds or list(SPEED_MODES)
@@ -393,7 +357,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
             try:
                 stats = replay(bags[speed], estimates,
                                lambda ov, layer=layer, run_dir=run_dir: node_group(
-                                   [params_file("estimation"), layer], ov, run_dir / "logs"),
+                                   [params_file("estimation"), *layers, layer], ov, run_dir / "logs"),
                                progress=progress)
             except ReplayError as exc:
                 raise RuntimeError(f"replay {label} failed: {exc}; logs in {run_dir / 'logs'}") from exc
@@ -420,7 +384,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     result = {
         "data": data_dir, "mapping": str(map_path), "vehicle": VEHICLE,
         "samples": int(t.size), "duration_s": float(t[-1] - t[0]), "warmup_s": warmup_s,
-        "noise": noise, "noise_std_from_data": noise_std, "vibration_std": vibration_std,
+        "layers": [str(path) for path in layers], "noise": noise, "noise_std_from_data": noise_std,
+        "vibration_std": vibration_std,
         "wheel_dropout_s": list(wheel_dropout) if wheel_dropout is not None else None,
         "units": {"sideslip": "deg", "yaw_rate": "deg/s", "vy": "m/s", "vx": "m/s"},
         "rows": rows_out,
@@ -571,6 +536,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ASSUMED wheel speeds (speed ref) NaN from FROM to TO s after the drive's start (a "
                         "CAN dropout; TO past the end: lost for good); the errors over it are added")
     p.add_argument("--warmup", type=float, default=DEFAULT_WARMUP_S, help="seconds skipped by the metrics")
+    add_tuning_option(p, "the comparison's filter layer")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_namespace_option(p)
 
@@ -591,8 +557,9 @@ def main(args: argparse.Namespace) -> int:
                      filters=[f for f in args.filters.split(",") if f],
                      speeds=[s for s in args.speed.split(",") if s], noise=args.noise, rows=args.rows,
                      warmup_s=args.warmup, progress=not args.quiet, vibration_std=args.vibration_std,
-                     vibration_seed=args.vibration_seed, wheel_dropout=args.wheel_dropout)
-    except (ValueError, RuntimeError) as exc:
+                     vibration_seed=args.vibration_seed, wheel_dropout=args.wheel_dropout,
+                     params=args.params)
+    except (ValueError, RuntimeError, FileNotFoundError) as exc:
         print(f"stanford comparison failed: {exc}", file=sys.stderr)
         return 1
     print(format_table(result))

@@ -14,7 +14,7 @@ Cases (``--cases``; default: all that can be made here):
   CommonRoad multi-body BMW 320i (:mod:`.commonroad`), clean, with 4 m/s² of 10-60 Hz IMU
   vibration, and clean without GNSS and wheel speeds (the fallbacks). Lateral: sideslip and vy
   against the linear single-track KF
-  (:func:`vehicle_estimation.validation.stanford.baseline_linear_kf`, given the vehicle file's
+  (:func:`vehicle_estimation.validation.baselines.baseline_linear_kf`, given the vehicle file's
   cornering stiffnesses and the CAN speed).
 * ``fastsim_hills`` and its variants without GNSS and without wheel speeds, when FASTSim is
   installed (:mod:`.fastsim_drive`). Longitudinal: slope against the causal kinematic grade,
@@ -35,8 +35,11 @@ otherwise take: the fusion's speed (the CAN speed), pitch (the accelerometer's k
 roll (the accelerometer tilt less v r, where the drive rolls the car) and, with GNSS, heading (the
 course of the fixes over 1 s); the vehicle state's vx (the CAN speed) and yaw rate (the raw gyro).
 
+``--params FILE`` (repeatable) layers a tuning over ``estimation.yaml`` in every case, below a
+case's own layer, so that a change is scored on the whole set beside the same baselines.
+
 The real Stanford drive has its own command, ``vehicle-estimation stanford`` (the same kind of
-table, with its raw and vibration variants).
+table, with its raw and vibration variants, and the same ``--params``).
 
 Output in ``--out`` (default ``out/validate``): ``validation.json`` (every row, the commands'
 settings), ``validation.md`` (the table), one plot per case, and the bags and recorded
@@ -61,7 +64,8 @@ from vehicle_estimation.contract import topics as T
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.evaluation import metrics
 from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
-from vehicle_estimation.launcher.options import add_namespace_option, node_group_factory
+from vehicle_estimation.launcher.options import add_namespace_option, add_tuning_option, node_group_factory
+from vehicle_estimation.evaluation.validation_tables import format_table
 from vehicle_estimation.validation import baselines
 
 DEFAULT_OUT = Path("out") / "validate"
@@ -429,15 +433,21 @@ def _shipped_methods(params: Sequence[str] = ("estimation",)) -> dict[str, str]:
 
 
 def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases: Sequence[str] | None = None,
-        quick: bool = False, progress: bool = True) -> dict:
+        quick: bool = False, progress: bool = True, params: Sequence[str | Path] = ()) -> dict:
     """Make the cases, replay each, score it with its baseline; returns ``validation.json``'s content.
+
+    ``params``: parameter files (or names under params/) layered over ``estimation.yaml`` in
+    every case, below a case's own layer (the truck's TA-AEKF profile, a method case's method):
+    a tuning scored on the whole set, beside the same baselines.
 
     Raises :class:`FileExistsError` when ``out`` holds the bags or runs of an earlier run: the
     drives are generated afresh (a new library version may change them) and never mixed with
-    an earlier run's, whatever the case kinds.
+    an earlier run's, whatever the case kinds; :class:`FileNotFoundError` when a ``params``
+    file does not exist (before anything is made).
     """
     from vehicle_estimation.launcher.replay import ReplayError, replay
 
+    layers = tuple(str(params_file(name)) for name in params)
     out = Path(out)
     for used in (out / "bags", out / "runs"):
         if used.exists():
@@ -447,8 +457,9 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
     unknown = [g for g in groups if g not in CASE_BUILDERS]
     if unknown:
         raise ValueError(f"unknown case group(s) {unknown} (known: {', '.join(CASE_BUILDERS)})")
-    methods = _shipped_methods()
-    all_cases = [c for g in groups for c in CASE_BUILDERS[g](out / "bags", quick=quick)]
+    methods = _shipped_methods(("estimation", *layers))
+    all_cases = [replace(c, params=(c.params[0], *layers, *c.params[1:]))
+                 for g in groups for c in CASE_BUILDERS[g](out / "bags", quick=quick)]
     rows, replays, consistency, motion = [], [], [], []
     for case in all_cases:
         run_dir = out / "runs" / case.name
@@ -489,7 +500,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
                         "vehicle": str(case.vehicle), "params": list(case.params),
                         "independent": case.independent, "notes": case.notes,
                         "lossless": stats.lossless, "wall_s": time.monotonic() - wall})
-    result = {"params": "params/estimation.yaml", "methods": methods, "warmup_s": WARMUP_S,
+    result = {"params": "params/estimation.yaml", "layers": list(layers), "methods": methods, "warmup_s": WARMUP_S,
               "quick": quick, "cases": replays, "rows": rows, "motion": motion, "consistency": consistency}
     (out / "validation.json").write_text(json.dumps(result, indent=2, default=float) + "\n", encoding="utf-8")
     (out / "validation.md").write_text(format_table(result) + "\n", encoding="utf-8")
@@ -522,62 +533,12 @@ def _plot(case: Case, series: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _rows_table(rows: list[dict]) -> list[str]:
-    def num(x, spec=".3f"):
-        return format(x, spec) if x is not None and math.isfinite(x) else "n/a"
-
-    lines = ["| case | quantity | estimator | MAE | RMSE | baseline | baseline MAE | baseline RMSE | ratio |",
-             "| --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: |"]
-    for r in rows:
-        case = r["case"] + ("" if r["independent"] else " (ours)")
-        lines.append(f"| {case} | {r['quantity']} [{r['unit']}] | {r['estimator']} | {num(r['ours']['mae'])} | "
-                     f"{num(r['ours']['rmse'])} | {r['baseline']} | {num(r['base']['mae'])} | "
-                     f"{num(r['base']['rmse'])} | {num(r['ratio'], '.2f')} |")
-    return lines
-
-
-def format_table(result: dict) -> str:
-    lines = _rows_table(result["rows"])
-    lines.append("")
-    lines.append("ratio = our RMSE / the baseline's (below 1: ours better); mass rows in % of the true mass, "
-                 f"over the last half; other metrics after the first {result['warmup_s']:g} s; shipped methods: "
-                 + ", ".join(f"{k} {v}" for k, v in result["methods"].items()))
-    if result.get("motion"):
-        lines += ["", "The fusion's and the vehicle state's motion outputs against the raw sensors:", ""]
-        lines += _rows_table(result["motion"])
-    if result.get("consistency"):
-        lines += ["", format_consistency(result["consistency"])]
-    return "\n".join(lines)
-
-
-def format_consistency(rows: list[dict]) -> str:
-    """Honesty of the published variances: errors within 1/2/3 sigma, NEES, and the same over
-    the samples flagged converged."""
-    from vehicle_estimation.evaluation.report import format_share as pct
-
-    def num(x):
-        return "n/a" if x is None or not math.isfinite(x) else f"{x:.2f}"
-
-    lines = ["| case | estimate | within 1σ | 2σ | 3σ | NEES | flagged converged | converged within 2σ | "
-             "converged beyond 3σ | converged NEES |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for r in rows:
-        case = r["case"] + ("" if r["independent"] else " (ours)")
-        lines.append(f"| {case} | {r['quantity']} | {pct(r['within_1sigma'])} | {pct(r['within_2sigma'])} | "
-                     f"{pct(r['within_3sigma'])} | {num(r['nees'])} | {pct(r.get('converged_share'))} | "
-                     f"{pct(r.get('converged_within_2sigma'))} | {pct(r.get('converged_beyond_3sigma'))} | "
-                     f"{num(r.get('converged_nees'))} |")
-    lines.append("")
-    lines.append("An honest variance: 68 / 95 / 99.7 % of the errors within 1 / 2 / 3σ and NEES 1 (above 1: "
-                 "the published variance is too small); mass over the last half, the rest after the warm-up.")
-    return "\n".join(lines)
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output directory (default: {DEFAULT_OUT})")
     p.add_argument("--cases", default=",".join(CASE_BUILDERS),
                    help=f"comma-separated case groups (default: {','.join(CASE_BUILDERS)})")
     p.add_argument("--quick", action="store_true", help="one short drive per group (a smoke run)")
+    add_tuning_option(p, "a case's own layer (a method case's method, the truck's TA-AEKF profile)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     add_namespace_option(p)
 
@@ -585,10 +546,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     try:
         result = run(args.out, node_group_factory(args.namespace), cases=[c for c in args.cases.split(",") if c], quick=args.quick,
-                     progress=not args.quiet)
+                     progress=not args.quiet, params=args.params)
     except FileExistsError as exc:
         print(f"validate: {exc} (from an earlier run): remove {args.out} or choose another --out",
               file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:
+        print(f"validate: {exc}", file=sys.stderr)
         return 2
     print(format_table(result))
     print(f"wrote {args.out / 'validation.json'}, {args.out / 'validation.md'} and one plot per case")
