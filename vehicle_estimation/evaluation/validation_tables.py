@@ -24,7 +24,8 @@ def format_table(result: dict) -> str:
     lines = _rows_table(result["rows"])
     lines.append("")
     lines.append("ratio = our RMSE / the baseline's (below 1: ours better); mass rows in % of the true mass, "
-                 f"over the last half; other metrics after the first {result['warmup_s']:g} s; shipped methods: "
+                 f"over the last half; other metrics after the first {result['warmup_s']:g} s; "
+                 + ("methods" if result.get("layers") else "shipped methods") + ": "
                  + ", ".join(f"{k} {v}" for k, v in result["methods"].items()))
     if result.get("layers"):
         lines.append("params: estimation.yaml, then " + ", ".join(result["layers"]) + " in every case")

@@ -252,6 +252,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
 
     ``params``: files (or names under params/) layered over ``estimation.yaml`` in every replay,
     below the comparison's own layer (the filter, and the noise it sets).
+
     ``node_group(params_files, overrides, log_dir)`` builds the node processes (see
     :func:`main`); ``params_files`` are the layers after the vehicle file.
     """
@@ -259,6 +260,7 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, data_d
     from vehicle_estimation.io import import_map
     from vehicle_estimation.launcher.replay import ReplayError, print_stats, replay
     from vehicle_estimation.contract.vehicle import load_vehicle_params
+
     layers = [params_file(name) for name in params]
 
     filters = filters or list(FILTERS)
