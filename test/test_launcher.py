@@ -97,6 +97,22 @@ def test_run_in_process_refuses_a_bad_parameter_naming_it(tmp_path):
     assert "mass: invalid parameter" in proc.stderr and "time_jump_reset_s" in proc.stderr
 
 
+def test_a_node_process_s_last_words_are_the_last_line_of_its_log(tmp_path):
+    """Where a node's output goes to a file (validate, stanford, batch), the reason it stopped is
+    the log's last non-empty line; a replay that loses the node quotes it."""
+    from vehicle_estimation.launcher.processes import NodeProcess
+
+    log = tmp_path / "vehicle_state.log"
+    node = NodeProcess(PIPELINE[0], ["true"], log_path=log)
+    assert node.last_words() == ""                       # no log yet
+    log.write_text("starting\n" + "x" * 5000 + "\n[vehicle_estimation] invalid parameter: 'filter_rate_hz'\n\n",
+                   encoding="utf-8")
+    assert node.last_words() == "[vehicle_estimation] invalid parameter: 'filter_rate_hz'"
+    log.write_text("y" * 1000 + "\n", encoding="utf-8")
+    assert node.last_words(max_chars=50) == "y" * 50
+    assert NodeProcess(PIPELINE[0], ["true"]).last_words() == ""      # output to the terminal
+
+
 def test_a_shutdown_under_a_publishing_callback_is_a_clean_stop():
     """A SIGTERM shuts rclpy's context down at any moment. A callback that publishes just after
     it raises rclpy's RCLError; spin() takes that for the stop it is. Under load the launcher

@@ -179,6 +179,21 @@ def test_a_params_layer_sits_over_the_shipped_params_and_under_each_case_layer(t
     assert not (tmp_path / "out2").exists()
 
 
+def test_validate_with_a_refused_layer_stops_naming_the_parameter(tmp_path):
+    """A layer that a node refuses stops the run at the first case's start-up: exit 1 and one
+    line that quotes the node's reason (its log's last line), no traceback."""
+    layer = tmp_path / "bad.yaml"
+    layer.write_text("vehicle_state:\n  ros__parameters:\n    filter_rate_hz: -5.0\n", encoding="utf-8")
+    proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "validate", "--quick", "--cases", "commonroad",
+                           "--out", str(tmp_path / "out"), "--params", str(layer), "--quiet"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    line = next(x for x in proc.stderr.splitlines() if x.startswith("validate: "))
+    assert "replay of commonroad_dlc failed" in line and "vehicle_state (exit 2: " in line
+    assert "'filter_rate_hz'" in line and "out of range" in line
+
+
 @pytest.mark.parametrize(("cases", "used"), [("commonroad", "bags"), ("fastsim", "runs"), ("sim", "runs"),
                                              ("commonroad,fastsim,sim", "bags")])
 def test_validate_into_a_used_out_stops_with_a_message(tmp_path, used, cases):

@@ -63,6 +63,20 @@ class NodeProcess:
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
 
+    def last_words(self, max_chars: int = 400) -> str:
+        """The last non-empty line of the node's log ("" without one): where a node's output
+        goes to a file, the reason it stopped (a refused parameter names itself there)."""
+        if self.log_path is None:
+            return ""
+        try:
+            with open(self.log_path, "rb") as log:
+                log.seek(max(0, log.seek(0, os.SEEK_END) - 4 * max_chars))
+                lines = log.read().decode("utf-8", errors="replace").splitlines()
+        except OSError:
+            return ""
+        last = next((line.strip() for line in reversed(lines) if line.strip()), "")
+        return last[-max_chars:]
+
 
 @dataclass
 class NodeGroup:

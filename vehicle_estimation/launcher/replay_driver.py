@@ -256,7 +256,8 @@ def _spin_until(driver, executor, group, predicate, resend, timeout: float, what
             check_clock_owner(driver)      # a stalled step is where a second clock shows
             dead = group.check()
             if dead:
-                names = ", ".join(f"{n.spec.name} (exit {n.process.returncode})" for n in dead)
+                names = ", ".join(f"{n.spec.name} (exit {n.process.returncode}"
+                                  + (f": {words}" if (words := n.last_words()) else "") + ")" for n in dead)
                 # Exit 2 is a bad parameter: a respawn would only repeat it.
                 if tick_label is None or any(n.process.returncode == 2 or n.restarts >= MAX_RESPAWNS
                                              for n in dead):

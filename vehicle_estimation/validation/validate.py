@@ -554,6 +554,9 @@ def main(args: argparse.Namespace) -> int:
     except FileNotFoundError as exc:
         print(f"validate: {exc}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:         # a replay failed: the node's own words are in the message
+        print(f"validate: {exc}", file=sys.stderr)
+        return 1
     print(format_table(result))
     print(f"wrote {args.out / 'validation.json'}, {args.out / 'validation.md'} and one plot per case")
     return 0
