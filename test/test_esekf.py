@@ -14,7 +14,7 @@ import pytest
 
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF
-from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import euler_from_rotmat, quat_from_euler, quat_to_rotmat
 
 G = 9.80665
 IMU_HZ = 200.0
@@ -56,11 +56,11 @@ def _profiles(t):
     return v, vd, r, th, thd
 
 
-def simulate(seed=0, mounting_rpy=(0.0, 0.0, 0.0)):
+def simulate(seed=0, mounting_rpy=(0.0, 0.0, 0.0), mounting=None):
     """Return a dict of time series (true state + noisy sensor streams).
 
     ``mounting_rpy``: roll, pitch, yaw of imu_link in base_link [rad]; the IMU reads
-    C^T f with C the imu_link -> base_link rotation.
+    C^T f with C the imu_link -> base_link rotation (``mounting``, when given).
     """
     rng = np.random.default_rng(seed)
     # Truth on a 1 kHz grid, positions by trapezoidal integration.
@@ -80,7 +80,7 @@ def simulate(seed=0, mounting_rpy=(0.0, 0.0, 0.0)):
     wb = np.stack([-np.sin(beta) * r[k], -thd[k], np.cos(beta) * r[k]], axis=1)
     gb = G * np.stack([-np.sin(beta), np.zeros_like(beta), np.cos(beta)], axis=1)  # R^T e_z g
     fb = np.stack([vd[k], v[k] * wb[:, 2], -v[k] * wb[:, 1]], axis=1) + gb
-    C = quat_to_rotmat(quat_from_euler(*mounting_rpy))
+    C = quat_to_rotmat(quat_from_euler(*mounting_rpy)) if mounting is None else mounting
     imu_f = fb @ C + ACC_BIAS + rng.normal(0, ACC_NOISE, fb.shape)
     imu_w = wb @ C + GYR_BIAS + rng.normal(0, GYR_NOISE, wb.shape)
     # GNSS 10 Hz (stamps offset 1 ms from the IMU grid), CAN speed 100 Hz (offset 2.5 ms)
@@ -180,6 +180,27 @@ def test_imu_mounting_estimated(estimate):
         assert ekf.mounting_covariance[0, 0] < math.radians(0.3) ** 2
     else:
         assert grade_rmse > 0.4     # what the states are for
+
+
+@pytest.mark.parametrize("nominal_deg", [(0.0, 0.0, 90.0), (90.0, 0.0, 0.0), (180.0, 0.0, -90.0)],
+                         ids=["turned-left", "on-its-side", "upside-down-turned"])
+def test_imu_mounting_refined_in_base_link_axes(nominal_deg):
+    """An IMU turned or laid on its side: the nominal mounting is given, and what the states
+    refine is still the vehicle's pitch and yaw of it (base_link y and z), not whichever
+    vehicle axes the IMU's own y and z happen to point along. A 0.6 deg pitch error about
+    base_link y, on a turned IMU, would otherwise fall on the unobservable roll."""
+    nominal = quat_to_rotmat(quat_from_euler(*np.radians(nominal_deg)))
+    error = quat_to_rotmat(quat_from_euler(0.0, math.radians(-0.6), math.radians(0.5)))
+    sim = simulate(seed=1, mounting=error @ nominal)
+    config = FusionConfig(nh_sigma_z=0.1, estimate_mounting=True, mounting_rpy=tuple(np.radians(nominal_deg)))
+    ekf, out = run_filter(sim, FusionEKF(config))
+    m = out["running"] & (sim["t"] > 60.0)
+    grade_rmse = math.degrees(_rms(out["grade"][m] - sim["grade"][m]))
+    residual = np.degrees(euler_from_rotmat(ekf.mounting_rotation @ (error @ nominal).T))
+    print(f"{nominal_deg}: grade RMSE {grade_rmse:.3f} deg, mounting residual {np.round(residual, 3)} deg")
+    assert grade_rmse < 0.2
+    assert abs(residual[1]) < 0.15 and abs(residual[2]) < 0.3
+    assert ekf.mounting_covariance[0, 0] < math.radians(0.3) ** 2
 
 
 def test_in_motion_alignment_when_started_while_driving():
@@ -607,19 +628,21 @@ def test_gnss_makes_the_bias_observable_and_drops_the_unaided_prior(drive):
     assert np.nanmin(out["grade_var"][running]) < (cfg.unaided_accel_bias_sigma / G) ** 2
 
 
-def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), yaw_rate=0.0, **cfg):
+def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), yaw_rate=0.0, nominal_rpy=(0.0, 0.0, 0.0),
+               **cfg):
     """A filter aligned on level ground whose IMU sits ``pitch`` nose-up in the body (the nominal
-    mounting says level), pulled away at 0.5 m/s^2 to ``top_speed`` on a level road, turning at
-    ``yaw_rate`` [rad/s] all the while, without GNSS: the vertical constraint sees the body
-    velocity times the mounting error."""
-    ekf = FusionEKF(FusionConfig(nh_sigma_z=0.1, estimate_mounting=True, **cfg))
-    f_level, w = _static_imu(grade=pitch)
+    mounting ``nominal_rpy`` says no more), pulled away at 0.5 m/s^2 to ``top_speed`` on a level
+    road, turning at ``yaw_rate`` [rad/s] all the while, without GNSS: the vertical constraint
+    sees the body velocity times the mounting error."""
+    ekf = FusionEKF(FusionConfig(nh_sigma_z=0.1, estimate_mounting=True, mounting_rpy=nominal_rpy, **cfg))
+    to_nominal = quat_to_rotmat(quat_from_euler(*nominal_rpy)).T
+    f_level, w = (to_nominal @ x for x in _static_imu(grade=pitch))
     t = 0.0
     for i in range(250):
         t = i * 0.005
         ekf.update_speed(t, 0.0)
         ekf.process_imu(t, f_level, w)
-    to_imu = quat_to_rotmat(quat_from_euler(0.0, -pitch, 0.0)).T
+    to_imu = to_nominal @ quat_to_rotmat(quat_from_euler(0.0, -pitch, 0.0)).T
     for i in range(1, int(seconds / 0.005) + 1):
         t_i = t + i * 0.005
         accel = 0.5 if 0.5 * i * 0.005 < top_speed else 0.0
@@ -648,20 +671,22 @@ def test_without_gnss_a_crawl_does_not_move_the_mounting():
     assert crawl.mounting_covariance[0, 0] == pytest.approx(crawl.config.p0_mounting_sigma ** 2)
 
 
-def test_without_gnss_a_corner_holds_the_mounting_pitch_and_refines_its_yaw():
+@pytest.mark.parametrize("nominal_rpy", [(0.0, 0.0, 0.0), (math.pi / 2, 0.0, 0.0)], ids=["level", "on-its-side"])
+def test_without_gnss_a_corner_holds_the_mounting_pitch_and_refines_its_yaw(nominal_rpy):
     """In a corner the constraints miss the sideslip and the roll, which nothing pins without
     GNSS: above ``mounting_max_yaw_rate_without_gnss`` the mounting pitch keeps its value and its
     variance (its column is out of the constraints), while its yaw is still learnt; with the
-    gate opened the same corner moves the pitch."""
-    cornering = _pull_away(5.0, yaw_rate=0.1)
+    gate opened the same corner moves the pitch. The gate reads the vehicle's yaw rate, about
+    base_link z, also from an IMU on its side (whose own z axis then turns with the roll)."""
+    cornering = _pull_away(5.0, yaw_rate=0.1, nominal_rpy=nominal_rpy)
     prior = cornering.config.p0_mounting_sigma ** 2
     assert cornering.mounting_columns() == (False, True)
-    assert cornering.mounting_rpy[1] == 0.0
+    assert cornering.mounting_rpy[1] == pytest.approx(0.0, abs=1e-12)
     assert cornering.mounting_covariance[0, 0] == pytest.approx(prior)
     assert cornering.mounting_covariance[1, 1] < 0.8 * prior                # the yaw is learnt
-    ungated = _pull_away(5.0, yaw_rate=0.1, mounting_max_yaw_rate_without_gnss=1.0)
+    ungated = _pull_away(5.0, yaw_rate=0.1, nominal_rpy=nominal_rpy, mounting_max_yaw_rate_without_gnss=1.0)
     assert ungated.mounting_columns() == (True, True)
     assert abs(math.degrees(ungated.mounting_rpy[1])) > 0.01
-    straight = _pull_away(5.0, yaw_rate=0.01)                             # below the gate
+    straight = _pull_away(5.0, yaw_rate=0.01, nominal_rpy=nominal_rpy)    # below the gate
     assert straight.mounting_columns() == (True, True)
     assert abs(math.degrees(straight.mounting_rpy[1])) > 0.01

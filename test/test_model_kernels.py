@@ -202,6 +202,8 @@ def _running_ekf(seed: int) -> FusionEKF:
     ekf._q = q / np.linalg.norm(q)
     from vehicle_estimation.estimators.common.rotations import quat_to_rotmat
     ekf._R = quat_to_rotmat(ekf._q)
+    m = rng.normal(size=4)      # a turned IMU: the mounting's base_link axes are not its own
+    ekf._Rm = quat_to_rotmat(m / np.linalg.norm(m))
     ekf._ba, ekf._bg = rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.002
     A = rng.normal(size=(17, 17)) * 0.1
     ekf._P = A @ A.T + 1e-3 * np.eye(17)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 # Error-state layout, Eq. (32): z = [dp, dv, eps, dba, dbg], then the mounting pitch and
-# yaw corrections dm (about imu_link y, z; R_vi_true = R_vi_hat (I + S([0, dm]))).
+# yaw corrections dm (about base_link y, z; R_m,true = (I + S([0, dm])) R_m,hat).
 IP, IV, IA, IBA, IBG, IM = 0, 3, 6, 9, 12, 15
 N_ERR = 17
 

@@ -28,8 +28,8 @@ estimation of vehicle mass ...", MSSP 171, 108925), Sec. 5 and Alg. 1:
 Beyond the paper: IMU mounting states.  The paper's IMU was calibrated to the body; a
 car's IMU sits in ``imu_link``, rotated from ``base_link`` by a mounting rotation known
 only to a degree or so (REP-145).  The filter's attitude is the IMU's (what the gyros
-integrate), and two extra error states, the mounting pitch and yaw (about imu_link y and
-z), map it to the vehicle: the non-holonomic and CAN-speed constraints hold in
+integrate), and two extra error states, the mounting pitch and yaw (about base_link y and
+z, whichever way the IMU is turned), map it to the vehicle: the non-holonomic and CAN-speed constraints hold in
 ``base_link``, not in ``imu_link``, and they make the two angles observable once the car
 moves (pitch through the vertical constraint and the GNSS height, yaw through the lateral
 one).  Without them a 0.5 deg mounting pitch is 0.5 deg of grade error, and a 0.4 deg
@@ -383,9 +383,9 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
 
         With R_true = (I - S(eps)) R_hat:  v_i = R^T v - R^T S(v) eps  (the attitude
         term is dropped when ``full_velocity_jacobian`` is False, as in Eq. (46)); the
-        mounting R_m (imu_link -> base_link) with R_m,true = R_m (I + S(dm)) adds
-        v_b = R_m v_i - R_m S(v_i) dm (``mounting_columns``: the pitch's and the yaw's; by
-        default :meth:`mounting_columns`).
+        mounting R_m (imu_link -> base_link) with R_m,true = (I + S(dm)) R_m, dm about the
+        base_link axes, adds v_b = R_m v_i - S(R_m v_i) dm (``mounting_columns``: the pitch's
+        and the yaw's; by default :meth:`mounting_columns`).
         """
         pitch, yaw = self.mounting_columns() if mounting_columns is None else mounting_columns
         if self.compiled:
@@ -403,7 +403,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         if self.config.full_velocity_jacobian:
             H[:, IA:IA + 3] = -(RmRt[rows] @ skew(self._v))
         if pitch or yaw:
-            mounting = -(Rm[rows] @ skew(vi))[:, 1:3]
+            mounting = -skew(vb)[rows][:, 1:3]
             if pitch:
                 H[:, IM] = mounting[:, 0]
             if yaw:
@@ -482,7 +482,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._ba += dz[IBA:IBA + 3]
         self._bg += dz[IBG:IBG + 3]
         if self.config.estimate_mounting:
-            self._Rm = self._Rm @ quat_to_rotmat(quat_from_rotvec([0.0, dz[IM], dz[IM + 1]]))
+            self._Rm = quat_to_rotmat(quat_from_rotvec([0.0, dz[IM], dz[IM + 1]])) @ self._Rm
 
     def _reopen(self, kind: str, block: slice, W: np.ndarray, y: np.ndarray) -> None:
         """After many consecutive gate rejections: the filter is inconsistent; forget the

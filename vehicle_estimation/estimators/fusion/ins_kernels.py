@@ -129,11 +129,20 @@ def body_speed_rows(R, Rm, v, rows, full_jacobian, mounting_pitch, mounting_yaw,
             H[k, _IA] = -(a1 * v[2] - a2 * v[1])
             H[k, _IA + 1] = -(-a0 * v[2] + a2 * v[0])
             H[k, _IA + 2] = -(a0 * v[1] - a1 * v[0])
-        m0, m1, m2 = Rm[r, 0], Rm[r, 1], Rm[r, 2]   # -(Rm[r] @ S(vi))[1:3]
-        if mounting_pitch:
-            H[k, _IM] = -(-m0 * vi[2] + m2 * vi[0])
-        if mounting_yaw:
-            H[k, _IM + 1] = -(m0 * vi[1] - m1 * vi[0])
+        if mounting_pitch or mounting_yaw:   # -S(R_m v_i)[r, 1:3], dm about base_link axes
+            vb0 = Rm[0, 0] * vi[0] + Rm[0, 1] * vi[1] + Rm[0, 2] * vi[2]
+            vb1 = Rm[1, 0] * vi[0] + Rm[1, 1] * vi[1] + Rm[1, 2] * vi[2]
+            vb2 = Rm[2, 0] * vi[0] + Rm[2, 1] * vi[1] + Rm[2, 2] * vi[2]
+            if r == 0:   # the row of -S(v_b): (v_b,z, -v_b,y), (0, v_b,x), (-v_b,x, 0)
+                sp, sy = vb2, -vb1
+            elif r == 1:
+                sp, sy = 0.0, vb0
+            else:
+                sp, sy = -vb0, 0.0
+            if mounting_pitch:
+                H[k, _IM] = sp
+            if mounting_yaw:
+                H[k, _IM + 1] = sy
 
 
 @kernel
@@ -205,7 +214,8 @@ def joseph_update(P, H, W, y, gate, use_gate, hold_row, P_out, dz):
 @kernel
 def inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out):
     """Eqs. (41)-(43): ``p``, ``v``, the biases in place; the attitude ``q_new = q(-eps) (x) q``
-    into ``q_out``, ``R_out``; the mounting ``R_m R(0, dm)`` into ``Rm_out`` with ``mounting``."""
+    into ``q_out``, ``R_out``; the mounting ``R(0, dm) R_m`` (dm about base_link axes) into
+    ``Rm_out`` with ``mounting``."""
     for i in range(3):
         p[i] += dz[_IP + i]
         v[i] += dz[_IV + i]
@@ -239,7 +249,7 @@ def inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out):
         _rotmat(mx, my, mz, mw, D)
         for i in range(3):
             for j in range(3):
-                Rm_out[i, j] = Rm[i, 0] * D[0, j] + Rm[i, 1] * D[1, j] + Rm[i, 2] * D[2, j]
+                Rm_out[i, j] = D[i, 0] * Rm[0, j] + D[i, 1] * Rm[1, j] + D[i, 2] * Rm[2, j]
 
 
 @kernel

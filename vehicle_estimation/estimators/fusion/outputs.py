@@ -106,7 +106,7 @@ class FusionOutputs:
         if self.gnss_aided:
             return 0.0, 0.0
         speed = c.mounting_min_speed_without_gnss
-        cornering = abs(float(self._w_lp[2])) > c.mounting_max_yaw_rate_without_gnss
+        cornering = abs(float(self._Rm[2] @ self._w_lp)) > c.mounting_max_yaw_rate_without_gnss   # base_link z
         return (math.inf if cornering else speed), speed
 
     @property
@@ -172,10 +172,10 @@ class FusionOutputs:
     def _base_attitude_jacobian(self) -> np.ndarray:
         """J with eps_base = J z: R_wb,true = (I - S(eps_base)) R_wb,hat.
 
-        R_wb = R R_m^T; R_m,true^T = (I - S(dm)) R_m^T, so eps_base = eps + R [0, dm]."""
+        R_wb = R R_m^T; R_m,true^T = R_m^T (I - S(dm)), so eps_base = eps + R_wb [0, dm]."""
         J = np.zeros((3, N_ERR))
         J[:, IA:IA + 3] = self._eye3
-        J[:, IM:IM + 2] = self._R[:, 1:3]
+        J[:, IM:IM + 2] = (self._R @ self._Rm.T)[:, 1:3]
         return J
 
     @property
