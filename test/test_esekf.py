@@ -203,11 +203,13 @@ def test_imu_mounting_refined_in_base_link_axes(nominal_deg):
     assert ekf.mounting_covariance[0, 0] < math.radians(0.3) ** 2
 
 
-def test_in_motion_alignment_when_started_while_driving():
+@pytest.mark.parametrize("nominal_deg", [(0.0, 0.0, 0.0), (90.0, 0.0, 90.0)], ids=["level", "turned"])
+def test_in_motion_alignment_when_started_while_driving(nominal_deg):
     """A filter started at 25 s (15 m/s, no standstill ahead of it) levels itself on the
-    specific force minus the CAN-speed kinematics, takes the heading from GNSS, and then
-    tracks speed and grade."""
-    sim = simulate(seed=2)
+    specific force minus the CAN-speed kinematics (the car's, turned into the IMU's axes), takes
+    the heading from GNSS, and then tracks speed and grade."""
+    mounting_rpy = tuple(np.radians(nominal_deg))
+    sim = simulate(seed=2, mounting_rpy=mounting_rpy)
     start = sim["t"] >= 25.0
     cut = dict(sim)
     for key in ("t", "imu_f", "imu_w", "v", "grade", "yaw", "pos", "vn"):
@@ -215,16 +217,50 @@ def test_in_motion_alignment_when_started_while_driving():
     keep_g, keep_s = sim["gnss_t"] >= 25.0, sim["speed_t"] >= 25.0
     cut["gnss_t"], cut["gnss"] = sim["gnss_t"][keep_g], sim["gnss"][keep_g]
     cut["speed_t"], cut["speed"] = sim["speed_t"][keep_s], sim["speed"][keep_s]
-    ekf, out = run_filter(cut)
+    ekf, out = run_filter(cut, FusionEKF(FusionConfig(mounting_rpy=mounting_rpy)))
     assert ekf.events["aligned_in_motion"] == 1 and ekf.initialized
     t_init = cut["t"][np.argmax(out["running"])]
     assert t_init < 25.0 + 5.0 + 3.0, t_init
+    # aligned, and before any GNSS heading: already moving forward, along base_link x
+    aligned = FusionEKF(FusionConfig(mounting_rpy=mounting_rpy))
+    js = 0
+    for t, f, w, v in zip(cut["t"], cut["imu_f"], cut["imu_w"], cut["v"]):
+        aligned.process_imu(t, f, w)
+        while js < len(cut["speed_t"]) and cut["speed_t"][js] <= t:
+            aligned.update_speed(cut["speed_t"][js], cut["speed"][js])
+            js += 1
+        if aligned.events["aligned_in_motion"]:
+            np.testing.assert_allclose(aligned.velocity_body, [v, 0.0, 0.0], atol=0.3)
+            break
     m = out["running"] & (cut["t"] > 60.0)
     assert _rms(out["vx"][m] - cut["v"][m]) < 0.1
     assert math.degrees(_rms(out["grade"][m] - cut["grade"][m])) < 0.5
     # without it the filter waits for a standstill that only comes at the end of the drive
-    ekf_off, out_off = run_filter(cut, FusionEKF(FusionConfig(in_motion_alignment=False)))
+    ekf_off, out_off = run_filter(cut, FusionEKF(FusionConfig(in_motion_alignment=False, mounting_rpy=mounting_rpy)))
     assert not out_off["running"][cut["t"] < 130.0].any()
+
+
+@pytest.mark.parametrize("nominal_deg", [(0.0, 0.0, 0.0), (90.0, 0.0, 0.0)], ids=["level", "on-its-side"])
+def test_without_gnss_the_yaw_rate_bias_is_held(nominal_deg):
+    """Without GNSS nothing observes the heading, so the gyro bias about base_link z is a
+    consider state: it keeps what the standstill alignment gave it, while the constraints still
+    move the other two. On an IMU on its side that is the IMU's own y axis, not its z."""
+    mounting_rpy = tuple(np.radians(nominal_deg))
+    sim = simulate(seed=3, mounting_rpy=mounting_rpy)
+    ekf = FusionEKF(FusionConfig(mounting_rpy=mounting_rpy))
+    C = quat_to_rotmat(quat_from_euler(*mounting_rpy))
+    js, aligned = 0, None
+    for t, f, w in zip(sim["t"], sim["imu_f"], sim["imu_w"]):
+        ekf.process_imu(t, f, w)
+        while js < len(sim["speed_t"]) and sim["speed_t"][js] <= t:
+            ekf.update_speed(sim["speed_t"][js], sim["speed"][js])
+            js += 1
+        if aligned is None and ekf.status != "waiting_for_standstill" and ekf.status != "aligning":
+            aligned = C @ ekf.gyro_bias                       # about base_link's axes
+    assert not ekf.gnss_aided and aligned is not None
+    final = C @ ekf.gyro_bias
+    assert final[2] == pytest.approx(aligned[2], abs=1e-12)
+    assert abs(final[0] - aligned[0]) > 1e-6 and abs(final[1] - aligned[1]) > 1e-6
 
 
 def test_gyro_bias_recovered(drive):

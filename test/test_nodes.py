@@ -144,13 +144,52 @@ def test_imu_bias_message_carries_the_mounting():
     f_raw = C.T @ f_base + np.array([0.1, -0.05, 0.02])
     f, w = bias.correct(T0, f_raw, C.T @ np.array([0.0, 0.0, 0.2]) + np.array([0.0, 0.0, 0.003]))
     assert bias.valid
-    assert bias.accel_x_variance_at(T0) == pytest.approx(0.05 ** 2)   # the slope observer's bias variance
+    # the slope observer's along-track bias variance, the IMU's covariance turned into base_link
+    assert bias.accel_x_variance_at(T0) == pytest.approx(C[0, 0] ** 2 * 0.05 ** 2, rel=1e-12)
     np.testing.assert_allclose(f, f_base, atol=1e-12)
     np.testing.assert_allclose(w, [0.0, 0.0, 0.2], atol=1e-12)
+    # an IMU facing left: its y bias is the car's along-track one
+    msg.orientation.z = msg.orientation.w = math.sqrt(0.5)
+    msg.orientation.x = msg.orientation.y = 0.0
+    msg.linear_acceleration_covariance[4] = 0.02 ** 2
+    _, (_, _, _, along_track) = FusionImuBias.convert(msg)
+    assert along_track == pytest.approx(0.02 ** 2, rel=1e-12)
     # a publisher that leaves the orientation at zero means "no mounting": identity
     msg.orientation.w = msg.orientation.x = msg.orientation.y = msg.orientation.z = 0.0
     _, (_, _, mount, _) = FusionImuBias.convert(msg)
     np.testing.assert_array_equal(mount, np.eye(3))
+
+
+def test_before_the_fusion_speaks_the_imu_is_turned_by_the_vehicles_mounting():
+    """Until the fusion publishes its bias and refined mounting (or without a fusion node), a
+    node still turns imu/data into base_link by ``vehicle.imu_mounting_rpy``: an IMU facing
+    left reads the car's forward specific force on its -y axis."""
+    mounting = Parameter("vehicle.imu_mounting_rpy", value=[0.0, 0.0, math.pi / 2])
+    node = SlopeNode(parameter_overrides=vehicle_overrides() + [mounting])
+    h = Harness(node)
+    try:
+        f, w = node.bias.correct(T0, np.array([0.0, -1.0, 9.8]), np.array([0.02, 0.0, 0.1]))
+        assert not node.bias.valid
+        np.testing.assert_allclose(f, [1.0, 0.0, 9.8], atol=1e-12)
+        np.testing.assert_allclose(w, [0.0, 0.02, 0.1], atol=1e-12)
+    finally:
+        h.close()
+
+
+def test_the_state_node_reads_a_turned_imus_stated_noise_in_base_link():
+    from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+    from vehicle_estimation.ros.state_node import _stated_imu_variances
+
+    msg = Imu()
+    msg.linear_acceleration_covariance = [0.1, 0.0, 0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.9]
+    msg.angular_velocity_covariance = [1e-4, 0.0, 0.0, 0.0, 2e-4, 0.0, 0.0, 0.0, 3e-4]
+    facing_left = quat_to_rotmat(quat_from_euler(0.0, 0.0, math.pi / 2))
+    on_its_side = quat_to_rotmat(quat_from_euler(math.pi / 2, 0.0, 0.0))
+    assert _stated_imu_variances(msg, np.eye(3)) == pytest.approx((0.1, 0.4, 3e-4))
+    assert _stated_imu_variances(msg, facing_left) == pytest.approx((0.4, 0.1, 3e-4))
+    assert _stated_imu_variances(msg, on_its_side) == pytest.approx((0.1, 0.9, 2e-4))
+    msg.linear_acceleration_covariance[0] = -1.0            # REP-145: unknown
+    assert _stated_imu_variances(msg, facing_left) == pytest.approx((0.0, 0.0, 3e-4))
 
 
 def test_slope_node_passes_the_fusion_grade():
@@ -640,7 +679,9 @@ def test_mass_node_ffrls_uses_braking_samples():
     ("slope_node", "method:=bogus", "method"),
     ("slope_node", "cubic_prediction.fit_min_points:=2", "cubic_prediction.fit_min_points"),
     ("state_node", "vehicle.mass:=-5.0", "vehicle.mass"),
-    ("fusion_node", "fusion.mounting_rpy:=[0.0, 5.0, 0.0]", "mounting_rpy"),
+    ("fusion_node", "vehicle.imu_mounting_rpy:=[0.0, 5.0, 0.0]", "imu_mounting_rpy"),
+    ("slope_node", "vehicle.imu_mounting_rpy:=[0.0, 0.0]", "imu_mounting_rpy"),
+    ("fusion_node", "fusion.mounting_rpy:=[0.0, 0.0, 1.5]", "'fusion.mounting_rpy' (now 'vehicle.imu_mounting_rpy')"),
 ])
 def test_bad_parameter_stops_node_naming_it(module, override, name):
     proc = subprocess.run(

@@ -88,6 +88,10 @@ class VehicleParams:
         0.0, "Height of the IMU (on the sprung body) above the roll axis [m]: the body's roll "
         "acceleration then adds -roll_lever x roll acceleration to the measured ay, which the state "
         "node takes back out with the gyro's roll rate (0: not modelled)", low=0.0, high=4.0)
+    imu_mounting_rpy: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0), "Roll, pitch, yaw of imu_link in base_link [rad], as a static transform would "
+        "give them (REP-145: imu/data is in imu_link): every node turns the IMU into base_link by it, "
+        "and the fusion refines its pitch and yaw from there", low=-math.pi, high=math.pi, each=True)
     yaw_inertia: float = setting(4607.47, "Yaw moment of inertia I_z [kg m^2]", low=100.0, high=2000000.0)
     wheel_radius: float = setting(0.325, "Effective rolling radius [m]", low=0.1, high=1.5)
     wheel_inertia: float = setting(4.0, "Rotational inertia of all wheels and driveshafts I_w [kg m^2]", low=0.0, high=1000.0)
@@ -155,6 +159,8 @@ class VehicleParams:
         check_settings(self, prefix="vehicle.")
         if not self.gear_ratios:
             raise ValueError("vehicle.gear_ratios must list at least one ratio")
+        if len(self.imu_mounting_rpy) != 3:
+            raise ValueError(f"vehicle.imu_mounting_rpy must be 3 angles, got {self.imu_mounting_rpy!r}")
         if self.engine_idle_speed >= self.engine_max_speed:
             raise ValueError("vehicle.engine_idle_speed must be below vehicle.engine_max_speed")
 
@@ -173,6 +179,7 @@ class VehicleParams:
     def as_mapping(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["gear_ratios"] = list(self.gear_ratios)
+        out["imu_mounting_rpy"] = list(self.imu_mounting_rpy)
         return out
 
 

@@ -53,8 +53,11 @@ class FusionNode(EstimatorNode):
         # How long GNSS aids after a fix: the mass node must agree, so it is one node-level
         # parameter (set under /**), not fusion.gnss_aiding_timeout_s.
         timeout = self.declare_shared_setting(FusionConfig, "gnss_aiding_timeout_s")
-        config = self.declare_config("fusion", FusionConfig(gnss_aiding_timeout_s=timeout),
-                                     exclude=("gnss_aiding_timeout_s",))
+        # The IMU's nominal mounting is the vehicle's (every node turns the IMU by it), not fusion.*.
+        self.vehicle = self.declare_vehicle()
+        config = self.declare_config("fusion", FusionConfig(gnss_aiding_timeout_s=timeout,
+                                                            mounting_rpy=self.vehicle.imu_mounting_rpy),
+                                     exclude=("gnss_aiding_timeout_s", "mounting_rpy"))
         self.config = config
         self.odometry_rate = self.declare_float(
             "odometry_rate_hz", 50.0, "Rate of estimation/odometry and the grade [Hz]", 0.1, 1000.0)
@@ -87,7 +90,6 @@ class FusionNode(EstimatorNode):
             "wheel_speed_fallback", True,
             "While vehicle/speed is missing or older than fusion.speed_timeout_s, use the undriven "
             "wheels' mean speed x vehicle.wheel_radius as the speed (vehicle/joint_states)")
-        self.vehicle = self.declare_vehicle()
         self._undriven_wheels = list(self.vehicle.undriven_wheels)
         self.wheel_speed_std = self.declare_float(
             "wheel_speed_std", 0.01, "Relative std of the wheel-speed fallback's speed (the rolling "

@@ -111,7 +111,7 @@ class MassNode(EstimatorNode):
         self._last_persist = -math.inf
         self.resumed_from: float | None = None
         self._resume_persisted()
-        self.bias = FusionImuBias()
+        self.bias = FusionImuBias(self.vehicle.imu_mounting_rpy)
         self.window = UpdateWindow()
         self.accel_source = self.declare_str(
             "accel_source", "auto", "Longitudinal acceleration for the RLS (see UpdateWindow.acceleration)",

@@ -72,7 +72,7 @@ class SlopeNode(EstimatorNode):
         self.rate = self.declare_float("publish_rate_hz", 50.0, "Output rate [Hz]", 0.1, 1000.0)
         self.configs: dict[str, object] = {}
         self._make_core()
-        self.bias = FusionImuBias()
+        self.bias = FusionImuBias(self.vehicle.imu_mounting_rpy)
         self.grade = UpstreamHistory()
         self.state_speed = UpstreamHistory()
         self.odom_speed = UpstreamHistory()

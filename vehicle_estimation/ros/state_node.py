@@ -208,7 +208,7 @@ class StateNode(EstimatorNode):
                                 if self.fallback_method is not None else None)
         self.speed_presence = SpeedPresence(NO_SPEED_HOLD_S, self.stale_input_s)
         self._start_cores()
-        self.bias = FusionImuBias()
+        self.bias = FusionImuBias(self.vehicle.imu_mounting_rpy)
         self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
         self.mass = UpstreamHistory(lag_s=self.feedback_lag)
         self.attitude = UpstreamHistory()
@@ -453,7 +453,7 @@ class StateNode(EstimatorNode):
         # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
         # measurement of the interval than any one sample.
         if self.core.learns_measurement_noise:
-            self._imu_noise_sum += _stated_imu_variances(msg)
+            self._imu_noise_sum += _stated_imu_variances(msg, self.bias.mounting_at(t))
         self._z_sum += (f[0], f[1] - self._roll_gravity(t), w[2])
         self._roll_acceleration.add(w[0])
         self._z_count += 1
@@ -575,13 +575,17 @@ def _rear_wheels_measured(wheel_speeds: np.ndarray) -> bool:
     return bool(np.isfinite(wheel_speeds[2:]).all())
 
 
-def _stated_imu_variances(msg: Imu) -> tuple[float, float, float]:
-    """The variances of ax, ay and the yaw rate an IMU message states (REP-145: a covariance
-    of zeros, or -1 first, is unknown: 0)."""
-    a, w = msg.linear_acceleration_covariance, msg.angular_velocity_covariance
-    if a[0] < 0.0:
-        return (0.0, 0.0, max(w[8], 0.0)) if w[0] >= 0.0 else (0.0, 0.0, 0.0)
-    return (max(a[0], 0.0), max(a[4], 0.0), max(w[8], 0.0) if w[0] >= 0.0 else 0.0)
+def _stated_imu_variances(msg: Imu, mounting: np.ndarray) -> tuple[float, float, float]:
+    """The variances of ax, ay and the yaw rate in base_link that an IMU message states in its
+    imu_link, turned by ``mounting`` (imu_link -> base_link; REP-145: a covariance of zeros,
+    or -1 first, is unknown: 0)."""
+    def turned(cov) -> np.ndarray | None:
+        c = np.reshape(np.asarray(cov, float), (3, 3))
+        return None if c[0, 0] < 0.0 or not np.isfinite(c).all() else mounting @ c @ mounting.T
+
+    a, w = turned(msg.linear_acceleration_covariance), turned(msg.angular_velocity_covariance)
+    ax, ay = (0.0, 0.0) if a is None else (max(a[0, 0], 0.0), max(a[1, 1], 0.0))
+    return ax, ay, 0.0 if w is None else max(w[2, 2], 0.0)
 
 
 def main(args: list[str] | None = None) -> int:

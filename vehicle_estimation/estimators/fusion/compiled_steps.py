@@ -47,7 +47,7 @@ class FusionCompiledSteps:
     _w_nh: np.ndarray
     # FusionEKF's methods these steps share with its numpy path:
     _update_process_noise: Callable[[float], None]
-    _held_row: Callable[[], int]
+    _held_direction: Callable[[], np.ndarray]
     _mounting_min_speeds: Callable[[], tuple[float, float]]
 
     def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
@@ -56,7 +56,7 @@ class FusionCompiledSteps:
         c = self.config
         P, dz = np.empty((N_ERR, N_ERR)), np.empty(N_ERR)
         res = ins_kernels.joseph_update(self._P, H, W, y, 0.0 if gate is None else float(gate), gate is not None,
-                                        self._held_row(), P, dz)
+                                        self._held_direction(), P, dz)
         if res == ins_kernels.UPDATE_FAILED:
             self.rejected["update_numerical"] += 1
             return -1
@@ -76,14 +76,14 @@ class FusionCompiledSteps:
         q, R, Rm, P = np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((N_ERR, N_ERR))
         res = ins_kernels.constraint_update(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64), W,
                                             c.full_velocity_jacobian, *self._mounting_min_speeds(),
-                                            c.estimate_mounting, self._held_row(), self._p, self._ba, self._bg,
+                                            c.estimate_mounting, self._held_direction(), self._p, self._ba, self._bg,
                                             self._q, self._P, q, R, Rm, P)
         self._take_constraint_outcome(res, q, R, Rm, P)
 
     def _imu_step_compiled(self, t: float, dt: float) -> None:
         """``_propagate`` over ``dt`` and the non-holonomic update of a moving vehicle, in one
         call of :func:`.ins_kernels.imu_step`; ``_t`` becomes ``t`` in between, as in
-        ``process_imu`` (the process noise reads the old stamp, the held row the new one)."""
+        ``process_imu`` (the process noise reads the old stamp, the held direction the new one)."""
         c = self.config
         assert self._f_prev is not None and self._w_prev is not None   # only after the first sample
         self._update_process_noise(dt)
@@ -92,8 +92,8 @@ class FusionCompiledSteps:
         res = ins_kernels.imu_step(dt, c.stationary_imu_tau_s, self._f_prev, self._w_prev, self._ba, self._bg,
                                    self._g_vec, self._p, self._v, self._q, self._R, self._a_lp, self._w_lp, self._P,
                                    self._qd, _MOVING_ROWS, self._w_nh, c.full_velocity_jacobian,
-                                   *self._mounting_min_speeds(), c.estimate_mounting, self._held_row(), self._Rm, q, R,
-                                   Rm, P)
+                                   *self._mounting_min_speeds(), c.estimate_mounting, self._held_direction(), self._Rm,
+                                   q, R, Rm, P)
         self._q, self._R, self._P = q, R, P      # the propagation, at least
         self._take_constraint_outcome(res, q, R, Rm, P)
 

@@ -56,7 +56,8 @@ class FusionConfig:
     ``b_y / v_x``) and the filter trades one for the other (on FASTSim's drive the z bias went
     from -2 to +2 mrad/s). ``hold_yaw_rate_bias_without_gnss`` makes it a 'consider' state while
     no fix aids (a Schmidt update: its gain is zero, its covariance and cross-covariances are
-    kept, Joseph form), corrected by GNSS.
+    kept, Joseph form), corrected by GNSS. The bias held is the one about base_link z (the
+    IMU's own z on a level IMU; another of its axes, or a mix, on a turned one).
 
     The IMU mounting (``estimate_mounting``) enters the body-velocity constraints as the
     velocity times its angle. Without GNSS it is refined there only from
@@ -166,8 +167,8 @@ class FusionConfig:
     unaided_accel_bias_sigma: float = setting(0.05, "Accelerometer-bias error added to P in the grade variance "
                                               "until GNSS observes the bias: the prior P lacks, or what P "
                                               "misplaces when p0 holds the prior [m/s^2]", low=0.0)
-    hold_yaw_rate_bias_without_gnss: bool = setting(True, "Hold the z gyro bias while no GNSS fix aids (a "
-                                                    "consider state)")
+    hold_yaw_rate_bias_without_gnss: bool = setting(True, "Hold the yaw-rate gyro bias (about base_link z) "
+                                                    "while no GNSS fix aids (a consider state)")
     mounting_min_speed_without_gnss: float = setting(1.0, "Without GNSS the vehicle constraints refine the "
                                                      "mounting only from this speed up [m/s]", low=0.0)
     mounting_max_yaw_rate_without_gnss: float = setting(

@@ -132,6 +132,9 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             np.full(3, c.p0_accel_bias_sigma ** 2), np.full(3, c.p0_gyro_bias_sigma ** 2),
             np.full(2, c.p0_mounting_sigma ** 2 if c.estimate_mounting else 0.0)])
         self._Rm0 = quat_to_rotmat(quat_from_euler(*(float(a) for a in c.mounting_rpy)))  # imu_link -> base_link
+        self._no_hold = np.zeros(N_ERR)
+        self._yaw_bias_direction = np.zeros(N_ERR)
+        self._yaw_bias_direction[IBG:IBG + 3] = self._Rm0[2]      # base_link z in imu_link axes
         self._w_gnss = np.diag(np.asarray(c.gnss_sigma, float) ** 2)
         self._g_vec = np.array([0.0, 0.0, -c.gravity])
         self._w_nh = np.diag([c.nh_sigma_y ** 2, c.nh_sigma_z ** 2])   # read only
@@ -425,10 +428,12 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         pred, H = self._body_speed_rows(rows)
         self._update(-pred, H, W, None)
 
-    def _held_row(self) -> int:
-        """The gain row held at zero (the yaw-rate bias as a Schmidt consider state without
-        GNSS), or -1."""
-        return IBG + 2 if self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided else -1
+    def _held_direction(self) -> np.ndarray:
+        """The error-state direction the gain leaves out (the yaw-rate bias as a Schmidt consider
+        state without GNSS: the gyro bias along base_link z, in the IMU's axes by the nominal
+        mounting), or zeros."""
+        held = self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided
+        return self._yaw_bias_direction if held else self._no_hold
 
     def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form).
@@ -449,9 +454,8 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             if not d2 <= gate:
                 return 0
         K = PHt @ S_inv                                   # Eq. (37)
-        held = self._held_row()
-        if held >= 0:
-            K[held, :] = 0.0                              # Schmidt: a consider state keeps its value
+        held = self._held_direction()
+        K -= np.outer(held, held @ K)                     # Schmidt: a consider state keeps its value
         dz = K @ y                                        # Eq. (40), with the previous error reset to 0
         if not math.isfinite(float(dz.sum())):
             self.rejected["update_numerical"] += 1

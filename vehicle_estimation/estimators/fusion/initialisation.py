@@ -40,6 +40,7 @@ class FusionInitialisation:
     _v: np.ndarray
     _q: np.ndarray
     _R: np.ndarray
+    _Rm: np.ndarray
     _ba: np.ndarray
     _bg: np.ndarray
     _P: np.ndarray
@@ -86,9 +87,9 @@ class FusionInitialisation:
     def _motion_align_step(self, t: float, f: np.ndarray, w: np.ndarray) -> None:
         """Level the filter while driving: over ``in_motion_window_s`` of motion the mean
         specific force is gravity plus the mean kinematic acceleration, which the CAN speed
-        gives in the body frame as [dv/dt, v r, 0] (no sideslip, no vertical motion):
-        f = a_b + R^T g_up + b.  The gyro bias cannot be averaged out while turning, so it
-        starts at zero with ``in_motion_gyro_bias_sigma``."""
+        gives in base_link as [dv/dt, v r, 0] (no sideslip, no vertical motion), turned into
+        imu_link by the mounting: f = R_m^T a_b + R^T g_up + b.  The gyro bias cannot be
+        averaged out while turning, so it starts at zero with ``in_motion_gyro_bias_sigma``."""
         c = self.config
         assert self._last_speed is not None   # only called on a fresh CAN speed
         self._motion.append((t, f, w, float(self._last_speed)))
@@ -102,9 +103,11 @@ class FusionInitialisation:
         self._motion = []
         tc = ts - ts.mean()
         dvdt = float(tc @ (vs - vs.mean()) / (tc @ tc))          # least-squares slope of CAN speed
-        kinematic = np.array([dvdt, float(np.mean(vs * ws[:, 2])), -float(np.mean(vs * ws[:, 1]))])
-        self._align(fs.mean(axis=0) - kinematic, np.zeros(3))
-        self._v = self._R @ np.array([float(vs[-1]), 0.0, 0.0])
+        Rm = self._Rm
+        wb = ws @ Rm.T                                           # the rates about base_link axes
+        kinematic = np.array([dvdt, float(np.mean(vs * wb[:, 2])), -float(np.mean(vs * wb[:, 1]))])
+        self._align(fs.mean(axis=0) - Rm.T @ kinematic, np.zeros(3))
+        self._v = self._R @ (Rm.T @ np.array([float(vs[-1]), 0.0, 0.0]))
         tilt = c.in_motion_tilt_sigma ** 2
         P = self._P
         P[IA:IA + 2, IA:IA + 2] += np.eye(2) * tilt

@@ -146,9 +146,10 @@ def body_speed_rows(R, Rm, v, rows, full_jacobian, mounting_pitch, mounting_yaw,
 
 
 @kernel
-def joseph_update(P, H, W, y, gate, use_gate, hold_row, P_out, dz):
+def joseph_update(P, H, W, y, gate, use_gate, hold, P_out, dz):
     """Eqs. (37)-(40), (44): gain, error estimate ``dz`` and the Joseph-form covariance,
-    symmetrised. ``hold_row`` >= 0 zeroes that row of the gain (a Schmidt consider state).
+    symmetrised. ``hold``, a unit error-state direction (or zeros: none), takes that direction
+    out of the gain, K - hold hold^T K (a Schmidt consider state: the yaw-rate bias).
     Returns ``UPDATE_APPLIED``, ``UPDATE_GATED`` (``y^T S^-1 y`` above ``gate``) or
     ``UPDATE_FAILED`` (``S`` not positive definite, or ``dz`` not finite)."""
     n = P.shape[0]
@@ -175,9 +176,13 @@ def joseph_update(P, H, W, y, gate, use_gate, hold_row, P_out, dz):
             return UPDATE_GATED
     K = np.empty((n, m))
     cholesky_solve_rows(L, PHt, K)                     # Eq. (37): K = P H^T S^-1
-    if hold_row >= 0:
-        for a in range(m):
-            K[hold_row, a] = 0.0
+    for a in range(m):
+        s = 0.0
+        for i in range(n):
+            s += hold[i] * K[i, a]
+        if s != 0.0:
+            for i in range(n):
+                K[i, a] -= hold[i] * s
     total = 0.0
     for i in range(n):
         s = 0.0
@@ -253,7 +258,7 @@ def inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out):
 
 
 @kernel
-def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting, hold_row, p, ba,
+def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting, hold, p, ba,
                       bg, q, P, q_out, R_out, Rm_out, P_out):
     """The non-holonomic / standstill update (Eqs. (45)-(47), rows (3)) in one call: the body
     velocity ``rows`` should be zero, with noise ``W``: :func:`body_speed_rows` (with
@@ -266,7 +271,7 @@ def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min
     speed_sq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     body_speed_rows(R, Rm, v, rows, full_jacobian, mounting and speed_sq >= pitch_min_speed * pitch_min_speed,
                     mounting and speed_sq >= yaw_min_speed * yaw_min_speed, pred, H)
-    outcome = joseph_update(P, H, W, -pred, 0.0, False, hold_row, P_out, dz)
+    outcome = joseph_update(P, H, W, -pred, 0.0, False, hold, P_out, dz)
     if outcome == UPDATE_APPLIED:
         inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out)
     return outcome
@@ -274,7 +279,7 @@ def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min
 
 @kernel
 def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, rows, W, full_jacobian,
-             pitch_min_speed, yaw_min_speed, mounting, hold_row, Rm, q_out, R_out, Rm_out, P_out):
+             pitch_min_speed, yaw_min_speed, mounting, hold, Rm, q_out, R_out, Rm_out, P_out):
     """:func:`propagate`, then :func:`constraint_update` at the propagated state: one IMU sample
     of a moving vehicle. The outputs hold the propagation where the update is not applied
     (its outcome is returned)."""
@@ -282,7 +287,7 @@ def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, 
     q1, R1, P1 = np.empty(4), np.empty((3, 3)), np.empty((n, n))
     propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, q1, R1, P1)
     outcome = constraint_update(R1, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting,
-                                hold_row, p, ba, bg, q1, P1, q_out, R_out, Rm_out, P_out)
+                                hold, p, ba, bg, q1, P1, q_out, R_out, Rm_out, P_out)
     if outcome != UPDATE_APPLIED:
         q_out[:] = q1
         R_out[:, :] = R1
@@ -306,11 +311,12 @@ def warm_up(n: int = 17) -> None:
     H = np.zeros((2, n))
     body_speed_rows(R, R, v3, np.array([1, 2], dtype=np.int64), True, True, True, np.empty(2), H)
     dz = np.zeros(n)
-    joseph_update(P, H, np.eye(2), np.zeros(2), 1.0, True, -1, np.empty((n, n)), dz)
+    joseph_update(P, H, np.eye(2), np.zeros(2), 1.0, True, np.zeros(n), np.empty((n, n)), dz)
     inject(dz, v3.copy(), v3.copy(), q, v3.copy(), v3.copy(), R, True, np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
-    constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, -1, v3.copy(),
-                      v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
+    constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros(n),
+                      v3.copy(), v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)),
+                      np.empty((n, n)))
     imu_step(0.01, 1.0, v3, v3, v3.copy(), v3.copy(), v3, v3.copy(), v3.copy(), q, R, v3.copy(), v3.copy(), P,
-             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, -1, R, np.empty(4),
-             np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
+             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros(n), R,
+             np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
     _warm = True

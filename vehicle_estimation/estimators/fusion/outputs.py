@@ -191,12 +191,11 @@ class FusionOutputs:
 
     @property
     def accel_bias_covariance(self) -> np.ndarray:
-        """Including, until GNSS has observed it, the bias prior on x and y (see
-        ``FusionConfig.unaided_accel_bias_sigma``)."""
+        """In imu_link, including, until GNSS has observed it, the bias prior on the vehicle's
+        horizontal axes, base_link x and y (see ``FusionConfig.unaided_accel_bias_sigma``)."""
         P = self._P[IBA:IBA + 3, IBA:IBA + 3].copy()
-        P[0, 0] += self._unaided_bias_variance
-        P[1, 1] += self._unaided_bias_variance
-        return P
+        horizontal = self._Rm[:2]                       # base_link x and y in imu_link axes
+        return P + self._unaided_bias_variance * (horizontal.T @ horizontal)
 
     @property
     def road_grade_variance(self) -> float:

@@ -32,6 +32,8 @@ class ParameterError(ValueError):
 #: declare them (rclpy's own, the vehicle, the facts several nodes must agree on).
 SHARED_PARAMETERS = ("use_sim_time", "start_type_description_service", "gnss_aiding_timeout_s")
 SHARED_PREFIXES = ("vehicle.", "qos_overrides.")
+#: Parameters that moved: a params file that still gives the old name is told the new one.
+MOVED_PARAMETERS = {"fusion.mounting_rpy": "vehicle.imu_mounting_rpy"}
 
 
 def descriptor(description: str, *, bounds: Bounds | None = None, integer: bool = False,
@@ -178,6 +180,9 @@ class ParameterDeclarations:
             declared = list(self._parameters)  # type: ignore[attr-defined]
             hints = []
             for name in unknown:
+                if name in MOVED_PARAMETERS:
+                    hints.append(f"'{name}' (now '{MOVED_PARAMETERS[name]}')")
+                    continue
                 close = difflib.get_close_matches(name, declared, n=1, cutoff=0.6) or \
                     [d for d in declared if d.endswith("." + name)][:1]
                 hints.append(f"'{name}'" + (f" (did you mean '{close[0]}'?)" if close else ""))

@@ -16,7 +16,7 @@ import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.serialization import deserialize_message
 
-from vehicle_estimation.estimators.common.rotations import quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 from vehicle_estimation.ros.cdr import StampedLayout
 from vehicle_estimation.ros.stamps import sec_to_ns, stamp_to_sec
 
@@ -114,13 +114,14 @@ class FusionImuBias:
     ``orientation`` = the IMU mounting, imu_link -> base_link) at a low rate: a bias changes
     over minutes, so 10 Hz is plenty and costs downstream nodes almost nothing.
     :meth:`correct` removes the bias and rotates the sample into base_link. Without fusion
-    (not started, not yet initialised) samples pass through unchanged and :attr:`valid` is
-    False.
+    (not started, not yet initialised) samples keep their bias and are turned by the nominal
+    mounting ``mounting_rpy`` (``vehicle.imu_mounting_rpy``), and :attr:`valid` is False.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, mounting_rpy=(0.0, 0.0, 0.0)) -> None:
         self.history = UpstreamHistory(horizon_s=5.0)
         self.valid = False
+        self.nominal_mounting = quat_to_rotmat(quat_from_euler(*(float(a) for a in mounting_rpy)))
 
     @staticmethod
     def convert(msg: Any) -> tuple[float, Any] | None:
@@ -134,16 +135,23 @@ class FusionImuBias:
         norm = float(np.linalg.norm(q)) if np.isfinite(q).all() else 0.0
         # A publisher without a mounting leaves the quaternion at zero: identity.
         mount = quat_to_rotmat(q / norm) if norm > 0.5 else np.eye(3)
-        var = msg.linear_acceleration_covariance[0]
-        return t, (ba, bg, mount, var if math.isfinite(var) and var > 0.0 else 0.0)
+        # the along-track bias variance: the covariance is the IMU's, turned into base_link
+        cov = np.reshape(np.asarray(msg.linear_acceleration_covariance, float), (3, 3))
+        var = float((mount @ cov @ mount.T)[0, 0]) if np.isfinite(cov).all() else 0.0
+        return t, (ba, bg, mount, var if var > 0.0 else 0.0)
 
     def correct(self, t: float, f: Any, w: Any) -> tuple[Any, Any]:
         entry = self.history.at(t)
         self.valid = entry is not None
         if entry is None:
-            return f, w
+            return self.nominal_mounting @ f, self.nominal_mounting @ w
         ba, bg, mount, _ = entry
         return mount @ (f - ba), mount @ (w - bg)
+
+    def mounting_at(self, t: float) -> np.ndarray:
+        """imu_link -> base_link for stamp ``t``: the fusion's refined mounting, else the nominal."""
+        entry = self.history.at(t)
+        return self.nominal_mounting if entry is None else entry[2]
 
     def accel_x_variance_at(self, t: float) -> float | None:
         """The along-track bias variance [m^2/s^4] published for stamp ``t``, None without the
