@@ -231,6 +231,7 @@ def test_in_motion_alignment_when_started_while_driving(nominal_deg):
             js += 1
         if aligned.events["aligned_in_motion"]:
             np.testing.assert_allclose(aligned.velocity_body, [v, 0.0, 0.0], atol=0.3)
+            assert aligned.yaw == pytest.approx(0.0, abs=1e-9)     # odom = the car's start pose
             break
     m = out["running"] & (cut["t"] > 60.0)
     assert _rms(out["vx"][m] - cut["v"][m]) < 0.1

@@ -121,6 +121,13 @@ class FusionInitialisation:
         pitch = math.atan2(-f_mean[0], math.hypot(f_mean[1], f_mean[2]))
         self._q = quat_from_euler(roll, pitch, 0.0)       # yaw provisional until GNSS heading
         self._R = quat_to_rotmat(self._q)
+        # ... and that yaw is base_link's (odom = the start pose, REP-105), not a turned IMU's
+        base = self._R @ self._Rm.T
+        yaw = math.atan2(base[1, 0], base[0, 0])
+        if abs(yaw) > 1e-9:
+            self._q = quat_normalize(quat_multiply(np.array([0.0, 0.0, -math.sin(0.5 * yaw), math.cos(0.5 * yaw)]),
+                                                   self._q))
+            self._R = quat_to_rotmat(self._q)
         self._bg = w_mean.copy()
         self._ba = np.zeros(3)
         self._v = np.zeros(3)
