@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import struct
 import subprocess
@@ -123,6 +124,32 @@ def test_every_topic_present_with_its_rate(full_summary):
     assert "aligns at standstill" in text
     assert text.splitlines()[-1] == "every output will be published"
     json.dumps(full_summary, allow_nan=False)
+
+
+def _turned_imu(raw: bytes, C) -> bytes:
+    """An imu/data message as an IMU turned by C (imu_link -> base_link) would read it."""
+    msg = TS.deserialize_cdr(raw, "sensor_msgs/msg/Imu")
+    for field in ("linear_acceleration", "angular_velocity"):
+        v = getattr(msg, field)
+        v.x, v.y, v.z = (float(x) for x in C.T @ [v.x, v.y, v.z])
+    return bytes(TS.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+
+
+def test_an_imu_on_its_side_is_named_unless_the_vehicle_file_says_so(bags, tmp_path):
+    from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+
+    C = quat_to_rotmat(quat_from_euler(math.pi / 2, 0.0, 0.0))
+    bag = _copy(bags["full"], tmp_path / "on_its_side", lambda i, topic, typ, raw: (
+        topic, _turned_imu(raw, C) if topic == topics.IMU else raw))
+    text = _node_text(summarize(bag, _files(), {}), "fusion")
+    assert re.search(r"imu/data reads gravity (8[5-9]|9[0-5]) deg from base_link z", text), text
+    assert "mostly on its own y axis" in text
+    layer = tmp_path / "on_its_side.yaml"
+    layer.write_text("/**:\n  ros__parameters:\n    vehicle.imu_mounting_rpy: [1.5707963267948966, 0.0, 0.0]\n")
+    text = _node_text(summarize(bag, _files(layer), {}), "fusion")
+    assert "reads gravity" not in text
+    assert "IMU mounting: imu_link at roll, pitch, yaw 90.0, 0.0, 0.0 deg in base_link" in text
+    assert "reads gravity" not in _node_text(summarize(bags["full"], _files(), {}), "fusion")
 
 
 def test_out_of_order_and_duplicated_stamps(bags):

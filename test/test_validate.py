@@ -209,6 +209,25 @@ def test_validate_into_a_used_out_stops_with_a_message(tmp_path, used, cases):
     assert sorted(p.name for p in out.iterdir()) == [used]     # nothing generated
 
 
+def test_turned_imu_cases_give_the_replay_only_the_nominal_mounting(tmp_path, monkeypatch):
+    """The FASTSim drive with and without GNSS, made with the IMU turned by
+    TURNED_IMU_RPY_DEG; each replay gets a layer with the nominal mounting only (facing left),
+    so the fusion has the rest to learn."""
+    from vehicle_estimation.contract.vehicle import read_ros_params_file
+    from vehicle_estimation.validation import fastsim_drive, validate
+
+    calls = []
+    monkeypatch.setattr(fastsim_drive, "generate", lambda folder, **kw: calls.append(kw) or [
+        folder / name for name in fastsim_drive.VARIANTS])
+    cases = validate._turned_imu_cases(tmp_path, quick=True)
+    assert calls == [{"duration": 120.0, "imu_rpy_deg": validate.TURNED_IMU_RPY_DEG}]
+    assert [c.name for c in cases] == ["fastsim_hills_imu_facing_left", "fastsim_hills_no_gnss_imu_facing_left"]
+    layer = Path(cases[0].params[1])
+    assert cases[0].params == cases[1].params == ("estimation", str(layer))
+    nominal = read_ros_params_file(layer)["vehicle.imu_mounting_rpy"]
+    np.testing.assert_allclose(nominal, np.radians(validate.TURNED_IMU_NOMINAL_DEG), rtol=0, atol=1e-15)
+
+
 def test_commonroad_cases_include_each_clean_drive_without_gnss_and_wheel_speeds(tmp_path, monkeypatch):
     """The lateral drives also run on the fallbacks: each clean manoeuvre again without
     ``gnss/fix`` and the wheel joints, every other topic and joint (steering, CAN speed, IMU,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -15,6 +16,7 @@ fastsim = pytest.importorskip("fastsim")
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.validation import fastsim_drive as fd
 from vehicle_estimation.contract.vehicle import load_vehicle_params
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 
 PARAMS_FILE = Path(__file__).resolve().parents[1] / "params" / f"{fd.VEHICLE_NAME}.yaml"
 DURATION = 100.0  # s: two starts, cruise, braking, hills up and down
@@ -120,6 +122,25 @@ def test_specific_force_is_dvdt_plus_g_sin_grade(drive, result):
     assert np.max(np.abs(pitch + (slope - slope[0]))) < 0.01
 
 
+def test_a_turned_imu_reads_the_same_motion_in_its_own_axes(drive, result):
+    """``imu_rpy_deg``: imu/data in an imu_link turned in base_link (an IMU facing left, nose
+    0.5 deg down): the level IMU's motion, v_imu = C^T v_base, with the same noise and biases
+    (the same draws) in the IMU's own axes."""
+    turned = fd.sensor_result(drive, seed=3, imu_rpy_deg=(0.5, 0.0, 90.0))
+    level, imu = result.sensors["imu"], turned.sensors["imu"]
+    C = quat_to_rotmat(quat_from_euler(math.radians(0.5), 0.0, math.radians(90.0)))   # imu_link -> base_link
+    truth = fd.truth_signals(drive)
+    idx = fd._every(drive.t, fd.IMU_RATE_HZ)
+    motion = {"accel": truth["accel"][idx], "gyro": np.column_stack([truth[k][idx] for k in ("wx", "wy", "wz")])}
+    for key, bias in (("accel", "bias_accel"), ("gyro", "bias_gyro")):
+        np.testing.assert_array_equal(imu[bias], level[bias])
+        noise = level[key] - level[bias] - motion[key]
+        np.testing.assert_allclose(imu[key], motion[key] @ C + level[bias] + noise, rtol=0.0, atol=1e-12)
+    # facing left: the car's forward specific force is on the IMU's -y, gravity stays on z
+    assert np.corrcoef(imu["accel"][:, 1], -level["accel"][:, 0])[0, 1] > 0.99
+    assert np.mean(imu["accel"][:, 2]) == pytest.approx(np.mean(level["accel"][:, 2]), abs=0.01)
+
+
 def test_wheels_speed_and_powertrain(drive, result):
     S = result.sensors
     r = float(drive.vehicle["veh.chassis.wheel_radius_meters"])
@@ -171,7 +192,13 @@ def test_cli(tmp_path, monkeypatch):
     out = tmp_path / "new"      # the params file goes into the --out folder, not made yet
     assert fd.main(["--out", str(out), "--duration", "30", "--seed", "2",
                     "--write-params", str(out / "v.yaml")]) == 0
-    assert calls == [(out, {"seed": 2, "duration": 30.0})]
+    assert fd.main(["--out", str(out), "--imu-rpy-deg", "0.5", "0", "90", "--write-params", str(out / "t.yaml")]) == 0
+    assert calls == [(out, {"seed": 2, "duration": 30.0, "imu_rpy_deg": (0.0, 0.0, 0.0)}),
+                     (out, {"seed": 0, "duration": None, "imu_rpy_deg": (0.5, 0.0, 90.0)})]
+    # a turned IMU's vehicle file says how it is turned; a level one's is the committed file
+    turned = load_vehicle_params(out / "t.yaml")
+    np.testing.assert_allclose(turned.imu_mounting_rpy, np.radians([0.5, 0.0, 90.0]), rtol=0, atol=1e-15)
+    assert dataclasses.replace(turned, imu_mounting_rpy=(0.0, 0.0, 0.0)) == load_vehicle_params(PARAMS_FILE)
     assert (out / "v.yaml").read_text(encoding="utf-8") == PARAMS_FILE.read_text(encoding="utf-8")
 
 

@@ -175,7 +175,7 @@ def test_cli(tmp_path, monkeypatch):
     monkeypatch.setattr(wd, "generate", lambda out, **kw: calls.append((out, kw)) or [])
     assert wd.main(["--out", str(tmp_path), "--duration", "30", "--seed", "2",
                     "--write-params", str(tmp_path / "v.yaml")]) == 0
-    assert calls == [(tmp_path, {"seed": 2, "duration": 30.0})]
+    assert calls == [(tmp_path, {"seed": 2, "duration": 30.0, "imu_rpy_deg": (0.0, 0.0, 0.0)})]
     assert (tmp_path / "v.yaml").read_text(encoding="utf-8") == wd.params_yaml()
 
 

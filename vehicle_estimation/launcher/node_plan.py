@@ -16,6 +16,7 @@ import yaml
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS, merge_ros_parameters
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 from vehicle_estimation.estimators.registry import DEFAULT_NO_SPEED_FILTER, NO_SPEED_HOLD_S, STATE_FILTERS
 from vehicle_estimation.estimators.state.core import DEFAULT_CORNERING_ACCEL_STD
 from vehicle_estimation.io.bag_survey import InspectError, TopicStats
@@ -130,6 +131,36 @@ def _alignment(stats: TopicStats | None, speed: TopicStats | None, fusion: dict[
             "empty (unless the car later stands still with a quiet IMU)"), False
 
 
+#: Beyond this angle between base_link z and the start's mean specific force turned by the
+#: nominal mounting, the mounting is not the IMU's: no road or mounting error is that large.
+GRAVITY_MISMATCH_DEG = 20.0
+
+
+def _mounting_lines(stats: TopicStats | None, fusion: dict[str, Any]) -> list[str]:
+    """What ``vehicle.imu_mounting_rpy`` says, and whether the IMU's start agrees: the mean
+    specific force of the first samples, turned into base_link by it, should point up."""
+    rpy = [float(a) for a in fusion.get("vehicle.imu_mounting_rpy", (0.0, 0.0, 0.0))]
+    lines = []
+    if any(rpy):
+        degrees = ", ".join(f"{math.degrees(a):.1f}" for a in rpy)
+        lines.append(f"IMU mounting: imu_link at roll, pitch, yaw {degrees} deg in base_link "
+                     "(vehicle.imu_mounting_rpy); every node turns imu/data by it")
+    values = np.asarray(stats.start_values, dtype=float) if stats else np.empty((0, 6))
+    if values.shape[0] < 2 or not np.isfinite(values[:, :3]).all():
+        return lines
+    f = quat_to_rotmat(quat_from_euler(*rpy)) @ values[:, :3].mean(axis=0)
+    norm = float(np.linalg.norm(f))
+    if not 5.0 <= norm <= 15.0:
+        return lines
+    off = math.degrees(math.acos(max(-1.0, min(1.0, f[2] / norm))))
+    if off > GRAVITY_MISMATCH_DEG:
+        axis = "xyz"[int(np.argmax(np.abs(values[:, :3].mean(axis=0))))]
+        lines.append(f"imu/data reads gravity {off:.0f} deg from base_link z after vehicle.imu_mounting_rpy "
+                     f"(mostly on its own {axis} axis): give the IMU's mounting in the vehicle file, "
+                     "or every node reads the IMU in the wrong axes")
+    return lines
+
+
 def _speedless_stretches(imu: TopicStats | None, stamps: np.ndarray,
                          spacing_s: float) -> list[tuple[float, float]]:
     """Where the state node runs ``no_speed_filter``: (from, to) in seconds after the IMU's
@@ -200,6 +231,7 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
             lines.append(line)
             lines.append("CAN speed aids the filter (vehicle/speed)" if have_speed
                          else "no vehicle/speed: only the vehicle constraints bound the velocity")
+        lines += _mounting_lines(imu, fusion)
     if not fusion_ok:
         empty += FUSION_OUTPUTS
     nodes["fusion"] = {"needs": "imu/data", "runs": fusion_ok, "lines": lines}

@@ -27,16 +27,22 @@ The fusion's and the state's motion outputs are held against the raw sensors the
   over the last second (a course over ground without Doppler).
 * the CAN speed for the speed and vx, the gyro's own yaw rate for the yaw rate (no baseline
   function: the sensor is the baseline).
+
+:func:`read_sensor_inputs` reads those raw sensors from a bag, the IMU turned into base_link by
+the mounting the nodes are given.
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 from scipy import signal
 
+from vehicle_estimation.contract import topics as T
 from vehicle_estimation.contract.vehicle import GRAVITY, VehicleParams
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 
 #: Corner of the kinematic grade's low-pass [Hz]: the accelerometer's vibration and the
 #: differentiated speed's quantisation are far above it, a road's grade changes below it.
@@ -184,3 +190,45 @@ def baseline_linear_kf(t, ay, yaw_rate, delta, vx, *, m, lf, lr, iz, cf, cr) -> 
         x, P = x + K @ (np.array([ay[i], yaw_rate[i]]) - C @ x - D * delta[i]), (np.eye(2) - K @ C) @ P
         out[i] = x
     return out[:, 0], out[:, 1]
+
+
+def read_sensor_inputs(bag: Path, imu_mounting_rpy=(0.0, 0.0, 0.0)) -> dict[str, np.ndarray]:
+    """The raw sensors the baselines start from: IMU (f_x, f_y, yaw rate in base_link, turned by
+    the mounting the nodes are given, ``vehicle.imu_mounting_rpy``), CAN speed, drive force,
+    and the GNSS fixes with a valid status in ENU about the first one (as the fusion's odom
+    frame), each topic empty where the bag lacks it."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+
+    imu, speed, force, fixes = [], [], [], []
+    want = {T.IMU, T.SPEED, T.POWERTRAIN, T.GNSS}
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        conns = [c for c in reader.connections if c.topic.lstrip("/") in want]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            topic = conn.topic.lstrip("/")
+            if topic == T.IMU:
+                a, w = msg.linear_acceleration, msg.angular_velocity
+                imu.append((t, a.x, a.y, a.z, w.x, w.y, w.z))
+            elif topic == T.SPEED:
+                speed.append((t, msg.twist.twist.linear.x))
+            elif topic == T.GNSS:
+                if msg.status.status >= 0 and math.isfinite(msg.latitude) and math.isfinite(msg.longitude):
+                    fixes.append((t, msg.latitude, msg.longitude, msg.altitude))
+            else:
+                effort = dict(zip(msg.name, msg.effort))
+                force.append((t, effort.get(T.DRIVE_JOINT, math.nan)))
+    imu_a = np.array(imu, dtype=float).reshape(-1, 7)
+    C = quat_to_rotmat(quat_from_euler(*(float(a) for a in imu_mounting_rpy)))     # imu_link -> base_link
+    f, w = imu_a[:, 1:4] @ C.T, imu_a[:, 4:7] @ C.T
+    speed_a, force_a = (np.array(x, dtype=float).reshape(-1, 2) for x in (speed, force))
+    enu = np.zeros((0, 3))
+    if fixes:
+        origin = LocalTangentPlane(*fixes[0][1:])
+        enu = np.array([origin.to_enu(*f[1:]) for f in fixes], dtype=float).reshape(-1, 3)
+    return {"imu_t": imu_a[:, 0], "fx": f[:, 0], "fy": f[:, 1], "wz": w[:, 2],
+            "speed_t": speed_a[:, 0], "speed": speed_a[:, 1], "force_t": force_a[:, 0], "force": force_a[:, 1],
+            "gnss_t": np.array([f[0] for f in fixes], dtype=float), "east": enu[:, 0], "north": enu[:, 1]}

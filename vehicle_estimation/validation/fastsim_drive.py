@@ -249,7 +249,7 @@ def truth_signals(drive: Drive) -> dict[str, np.ndarray]:
 _every = rd.every
 
 
-def sensor_result(drive: Drive, *, seed: int = 0):
+def sensor_result(drive: Drive, *, seed: int = 0, imu_rpy_deg=(0.0, 0.0, 0.0)):
     """A :class:`~vehicle_estimation.sim.simulate.SimResult`-like object (``sensors``, ``truth``)
     that :func:`vehicle_estimation.sim.bag.build_streams` accepts."""
     rng = np.random.default_rng(seed)
@@ -260,7 +260,7 @@ def sensor_result(drive: Drive, *, seed: int = 0):
 
     # IMU
     imu = rd.imu_samples(rng, tru, _every(t, IMU_RATE_HZ), accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE,
-                         accel_bias=ACCEL_BIAS, gyro_bias=GYRO_BIAS)
+                         accel_bias=ACCEL_BIAS, gyro_bias=GYRO_BIAS, mounting_rpy_deg=imu_rpy_deg)
 
     # CAN speed, wheel speeds and brake torques
     j = _every(t, CAN_RATE_HZ)
@@ -382,14 +382,16 @@ VARIANTS = {   # bag name: (gnss, wheels)
 }
 
 
-def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None) -> list[Path]:
+def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None,
+             imu_rpy_deg=(0.0, 0.0, 0.0)) -> list[Path]:
     """The drive as ``fastsim_hills``, ``fastsim_hills_no_gnss`` and
     ``fastsim_hills_no_gnss_no_wheels`` in ``out_dir`` plus the vehicle file
-    ``fastsim_2012_ford_fusion.yaml``; returns the bag paths."""
+    ``fastsim_2012_ford_fusion.yaml``; returns the bag paths. ``imu_rpy_deg``: the IMU's roll, pitch, yaw in
+    ``base_link`` [deg] (:func:`~.road_drive.imu_samples`)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(params_yaml(), encoding="utf-8")
-    result = sensor_result(simulate(duration), seed=seed)
+    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(rd.with_imu_mounting(params_yaml(), imu_rpy_deg), encoding="utf-8")
+    result = sensor_result(simulate(duration), seed=seed, imu_rpy_deg=imu_rpy_deg)
     return [write_drive(result, out_dir / name, gnss=gnss, wheels=wheels)
             for name, (gnss, wheels) in VARIANTS.items()]
 

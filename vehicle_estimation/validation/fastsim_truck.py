@@ -144,13 +144,15 @@ def params_yaml(*, drag_k: float | None = None) -> str:
 VARIANTS = {"fastsim_truck": (True, True), "fastsim_truck_no_gnss": (False, True)}
 
 
-def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None) -> list[Path]:
+def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None,
+             imu_rpy_deg=(0.0, 0.0, 0.0)) -> list[Path]:
     """``fastsim_truck`` and ``fastsim_truck_no_gnss`` in ``out_dir`` plus the vehicle file
-    ``fastsim_class8_truck.yaml``; returns the bag paths."""
+    ``fastsim_class8_truck.yaml``; returns the bag paths. ``imu_rpy_deg``: the IMU's roll, pitch, yaw in
+    ``base_link`` [deg] (:func:`~.road_drive.imu_samples`)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(params_yaml(), encoding="utf-8")
-    result = fd.sensor_result(simulate(duration), seed=seed)
+    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(rd.with_imu_mounting(params_yaml(), imu_rpy_deg), encoding="utf-8")
+    result = fd.sensor_result(simulate(duration), seed=seed, imu_rpy_deg=imu_rpy_deg)
     return [fd.write_drive(result, out_dir / name, gnss=gnss, wheels=wheels)
             for name, (gnss, wheels) in VARIANTS.items()]
 

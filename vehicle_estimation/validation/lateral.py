@@ -54,6 +54,7 @@ from vehicle_estimation.validation.baselines import baseline_linear_kf
 from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params, merge_ros_parameters
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.estimators.common.guard import STAMP_TOLERANCE_S
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 
 PARAMS_FILE = params_file("commonroad_bmw320i")
 FILTER_RATE_HZ = 100.0
@@ -69,8 +70,9 @@ DEFAULT_ROLL = "truth"
 
 
 # --------------------------------------------------------------------------- bag reading
-def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
-    """The inputs and truth of a bag as arrays (header stamps, in bag order)."""
+def read_drive(bag: Path, imu_mounting_rpy=(0.0, 0.0, 0.0)) -> dict[str, dict[str, np.ndarray]]:
+    """The inputs and truth of a bag as arrays (header stamps, in bag order; the IMU turned into
+    base_link by ``imu_mounting_rpy``, as the nodes turn it)."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -109,8 +111,9 @@ def read_drive(bag: Path) -> dict[str, dict[str, np.ndarray]]:
     arr = {k: np.array(v, dtype=float).reshape(-1, widths[k]) for k, v in rows.items()}
     imu, js, sp, gt, gb, go = (arr[T.IMU], arr[T.JOINT_STATES], arr[T.SPEED], arr[T.GT_VEHICLE_STATE],
                                arr[T.GT_SIDESLIP], arr[T.GT_ODOMETRY])
+    C = quat_to_rotmat(quat_from_euler(*(float(a) for a in imu_mounting_rpy)))     # imu_link -> base_link
     return {
-        "imu": {"t": imu[:, 0], "f": imu[:, 1:4], "w": imu[:, 4:7]},
+        "imu": {"t": imu[:, 0], "f": imu[:, 1:4] @ C.T, "w": imu[:, 4:7] @ C.T},
         "joints": {"t": js[:, 0], "wheels": js[:, 1:5], "steering_wheel": js[:, 5]},
         "speed": {"t": sp[:, 0], "v": sp[:, 1], "var": sp[:, 2]},
         "truth": {"t": gt[:, 0], "vx": gt[:, 1], "vy": gt[:, 2], "yaw_rate": gt[:, 3],
@@ -302,7 +305,7 @@ def compare_state_filters(bag: Path, *, vehicle: VehicleParams | str | Path | No
         vehicle = load_vehicle_params(PARAMS_FILE if vehicle is None else vehicle)
     if wheel_radius is not None:
         vehicle = dataclasses.replace(vehicle, wheel_radius=float(wheel_radius))
-    drive = read_drive(Path(bag))
+    drive = read_drive(Path(bag), vehicle.imu_mounting_rpy)
     truth = drive["truth"]
     out: dict = {"bag": str(bag), "wheel_radius": vehicle.wheel_radius, "roll": roll}
     base = _scores(run_baseline(drive, vehicle), truth, start)

@@ -19,6 +19,7 @@ import numpy as np
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 from vehicle_estimation.sim import bag as simbag
 
 #: Truth keys a bag's ground-truth topics are written from.
@@ -93,14 +94,17 @@ def road_truth(t: np.ndarray, v: np.ndarray, slope: np.ndarray, *, mass: float, 
 
 
 def imu_samples(rng: np.random.Generator, truth: dict, idx: np.ndarray, *, accel_noise: float, gyro_noise: float,
-                accel_bias: float, gyro_bias: float) -> dict:
-    """``imu/data`` at the truth samples ``idx`` (``imu_link`` = ``base_link``): white noise and a
-    constant bias per axis of +-``accel_bias`` / +-``gyro_bias`` (signs from ``rng``)."""
+                accel_bias: float, gyro_bias: float, mounting_rpy_deg=(0.0, 0.0, 0.0)) -> dict:
+    """``imu/data`` at the truth samples ``idx`` in ``imu_link``, which sits in ``base_link`` at
+    roll, pitch, yaw ``mounting_rpy_deg`` (REP-103 angles; zero: the same axes), with white noise
+    and a constant bias per axis of +-``accel_bias`` / +-``gyro_bias`` (signs from ``rng``)."""
     a_bias = accel_bias * rng.choice([-1.0, 1.0], 3)
     g_bias = gyro_bias * rng.choice([-1.0, 1.0], 3)
+    # rows are vectors: v_imu = C^T v_base is v_base @ C, C imu_link -> base_link
+    C = quat_to_rotmat(quat_from_euler(*np.radians(np.asarray(mounting_rpy_deg, float))))
     gyro = np.column_stack([truth["wx"], truth["wy"], truth["wz"]])
-    accel = truth["accel"][idx] + a_bias + accel_noise * rng.standard_normal((idx.size, 3))
-    gyro = gyro[idx] + g_bias + gyro_noise * rng.standard_normal((idx.size, 3))
+    accel = truth["accel"][idx] @ C + a_bias + accel_noise * rng.standard_normal((idx.size, 3))
+    gyro = gyro[idx] @ C + g_bias + gyro_noise * rng.standard_normal((idx.size, 3))
     return {"t": truth["t"][idx], "accel": accel, "gyro": gyro, "gyro_cov": np.full(3, gyro_noise ** 2),
             "accel_cov": np.full(3, accel_noise ** 2), "bias_accel": a_bias, "bias_gyro": g_bias}
 
@@ -157,10 +161,10 @@ def write_drive(result, path: Path, *, gnss: bool = True, wheels: bool = True) -
 
 
 def generator_main(argv, module, *, out_help: str) -> int:
-    """The command line both road-drive generators share: ``python -m <module> --out DIR
-    [--duration S] [--seed N] [--write-params FILE]``; prints each bag written. ``module`` has
-    ``generate(out, seed=, duration=)``, ``params_yaml()`` and ``FULL_DURATION``; its docstring's
-    first line is the description."""
+    """The command line the road-drive generators share: ``python -m <module> --out DIR
+    [--duration S] [--seed N] [--imu-rpy-deg R P Y] [--write-params FILE]``; prints each bag
+    written. ``module`` has ``generate(out, seed=, duration=, imu_rpy_deg=)``, ``params_yaml()``
+    and ``FULL_DURATION``; its docstring's first line is the description."""
     import argparse
 
     ap = argparse.ArgumentParser(prog=f"python -m {module.__spec__.name}",
@@ -168,12 +172,15 @@ def generator_main(argv, module, *, out_help: str) -> int:
     ap.add_argument("--out", type=Path, required=True, help=out_help)
     ap.add_argument("--duration", type=float, default=None, help=f"drive length [s] (default {module.FULL_DURATION:g})")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--imu-rpy-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "P", "Y"),
+                    help="the IMU's roll, pitch, yaw in base_link [deg]: imu/data is in that imu_link, "
+                         "and the vehicle files say so (vehicle.imu_mounting_rpy)")
     ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
     args = ap.parse_args(argv)
     if args.write_params is not None:
         args.write_params.parent.mkdir(parents=True, exist_ok=True)   # often the --out folder, made below
-        args.write_params.write_text(module.params_yaml(), encoding="utf-8")
-    for path in module.generate(args.out, seed=args.seed, duration=args.duration):
+        args.write_params.write_text(with_imu_mounting(module.params_yaml(), args.imu_rpy_deg), encoding="utf-8")
+    for path in module.generate(args.out, seed=args.seed, duration=args.duration, imu_rpy_deg=tuple(args.imu_rpy_deg)):
         print(path)
     return 0
 
@@ -196,3 +203,14 @@ def format_vehicle_yaml(header: list[str], values: dict, notes: dict[str, str]) 
         note = notes.get(key, "")
         lines.append(f"      {key}: {text}" + (f"   # {note}" if note else ""))
     return "\n".join(lines) + "\n"
+
+
+def with_imu_mounting(vehicle_yaml: str, imu_rpy_deg) -> str:
+    """A vehicle file of :func:`format_vehicle_yaml` (its ``vehicle:`` section last) that also
+    gives the IMU's mounting ``imu_rpy_deg`` [deg], as ``vehicle.imu_mounting_rpy`` [rad];
+    unchanged for a level IMU."""
+    if not any(imu_rpy_deg):
+        return vehicle_yaml
+    text = "[" + ", ".join(repr(math.radians(float(a))) for a in imu_rpy_deg) + "]"
+    degrees = ", ".join(f"{float(a):g}" for a in imu_rpy_deg)
+    return vehicle_yaml + f"      imu_mounting_rpy: {text}   # the drive's imu_link, roll, pitch, yaw {degrees} deg\n"

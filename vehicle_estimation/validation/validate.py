@@ -63,7 +63,7 @@ import numpy as np
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.evaluation import metrics
-from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params
+from vehicle_estimation.contract.vehicle import VehicleParams
 from vehicle_estimation.launcher.options import add_namespace_option, add_tuning_option, node_group_factory
 from vehicle_estimation.evaluation.validation_tables import format_table
 from vehicle_estimation.validation import baselines
@@ -146,6 +146,33 @@ def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
     return [Case(Path(p).name, source, Path(p), vehicle, ("longitudinal",)) for p in paths]
 
 
+#: The turned-IMU cases' IMU: facing left, 0.5 deg nose-down, 0.3 deg off in yaw (roll, pitch,
+#: yaw of imu_link in base_link [deg]), and the nominal mounting the replay is given.
+TURNED_IMU_RPY_DEG, TURNED_IMU_NOMINAL_DEG = (0.5, 0.0, 90.3), (0.0, 0.0, 90.0)
+
+
+def _turned_imu_cases(root: Path, *, quick: bool) -> list[Case]:
+    """The FASTSim car drive with and without GNSS, its IMU facing left and a little off, and
+    the vehicle file saying only that it faces left: the mounting states learn the rest."""
+    try:
+        from vehicle_estimation.validation import fastsim_drive
+        folder = root / "fastsim_turned_imu"
+        paths = [folder / name for name in fastsim_drive.VARIANTS]
+        if not all(p.exists() for p in paths):
+            paths = fastsim_drive.generate(folder, duration=120.0 if quick else None, imu_rpy_deg=TURNED_IMU_RPY_DEG)
+    except ImportError as exc:
+        print(f"[validate] no turned-IMU cases: {exc}")
+        return []
+    layer = root / "layers" / "imu_facing_left.yaml"
+    layer.parent.mkdir(parents=True, exist_ok=True)
+    nominal = ", ".join(repr(math.radians(a)) for a in TURNED_IMU_NOMINAL_DEG)
+    layer.write_text(f"/**:\n  ros__parameters:\n    vehicle.imu_mounting_rpy: [{nominal}]\n", encoding="utf-8")
+    source = "NREL FASTSim 3.1.0, the IMU turned: roll, pitch, yaw " + ", ".join(f"{a:g}" for a in TURNED_IMU_RPY_DEG)
+    return [Case(f"{Path(p).name}_imu_facing_left", source, Path(p), folder / f"{fastsim_drive.VEHICLE_NAME}.yaml",
+                 ("longitudinal",), params=("estimation", str(layer)))
+            for p in paths if Path(p).name in METHOD_FASTSIM_DRIVES]
+
+
 def _truck_cases(root: Path, *, quick: bool) -> list[Case]:
     try:
         from vehicle_estimation.validation import fastsim_truck
@@ -214,8 +241,8 @@ def _method_cases(root: Path, *, quick: bool) -> list[Case]:
 
 
 CASE_BUILDERS: dict[str, Callable[..., list[Case]]] = {
-    "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "truck": _truck_cases, "sim": _sim_cases,
-    "methods": _method_cases}
+    "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "turned_imu": _turned_imu_cases,
+    "truck": _truck_cases, "sim": _sim_cases, "methods": _method_cases}
 
 
 # ------------------------------------------------------------------------------------ scoring
@@ -261,7 +288,7 @@ def consistency_rows(case: Case, est: dict) -> list[dict]:
 def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str) -> tuple[list, dict]:
     from vehicle_estimation.validation import lateral
 
-    drive = lateral.read_drive(case.bag)
+    drive = lateral.read_drive(case.bag, vehicle.imu_mounting_rpy)
     truth = drive["truth"]
     base = lateral.run_baseline(drive, vehicle)
     start = float(truth["t"][0]) + WARMUP_S
@@ -281,44 +308,6 @@ def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str
                          _errors(state["t"], state["vy"], truth["t"], truth["vy"], start)[1:],
                          _errors(base["t"], base["vy"], truth["t"], truth["vy"], start)[1:]))
     return rows, series
-
-
-def _read_sensor_inputs(bag: Path) -> dict[str, np.ndarray]:
-    """The raw sensors the baselines start from: IMU (f_x, f_y, yaw rate), CAN speed, drive
-    force, and the GNSS fixes with a valid status in ENU about the first one (as the fusion's
-    odom frame), each topic empty where the bag lacks it."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
-
-    imu, speed, force, fixes = [], [], [], []
-    want = {T.IMU, T.SPEED, T.POWERTRAIN, T.GNSS}
-    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        conns = [c for c in reader.connections if c.topic.lstrip("/") in want]
-        for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-            topic = conn.topic.lstrip("/")
-            if topic == T.IMU:
-                imu.append((t, msg.linear_acceleration.x, msg.linear_acceleration.y, msg.angular_velocity.z))
-            elif topic == T.SPEED:
-                speed.append((t, msg.twist.twist.linear.x))
-            elif topic == T.GNSS:
-                if msg.status.status >= 0 and math.isfinite(msg.latitude) and math.isfinite(msg.longitude):
-                    fixes.append((t, msg.latitude, msg.longitude, msg.altitude))
-            else:
-                effort = dict(zip(msg.name, msg.effort))
-                force.append((t, effort.get(T.DRIVE_JOINT, math.nan)))
-    imu_a = np.array(imu, dtype=float).reshape(-1, 4)
-    speed_a, force_a = (np.array(x, dtype=float).reshape(-1, 2) for x in (speed, force))
-    enu = np.zeros((0, 3))
-    if fixes:
-        origin = LocalTangentPlane(*fixes[0][1:])
-        enu = np.array([origin.to_enu(*f[1:]) for f in fixes], dtype=float).reshape(-1, 3)
-    return {"imu_t": imu_a[:, 0], "fx": imu_a[:, 1], "fy": imu_a[:, 2], "wz": imu_a[:, 3],
-            "speed_t": speed_a[:, 0], "speed": speed_a[:, 1], "force_t": force_a[:, 0], "force": force_a[:, 1],
-            "gnss_t": np.array([f[0] for f in fixes], dtype=float), "east": enu[:, 0], "north": enu[:, 1]}
 
 
 def _wrapped(t_est, y_est, t_true, y_true, start: float) -> tuple[np.ndarray, np.ndarray]:
@@ -422,6 +411,16 @@ def longitudinal_rows(case: Case, est: dict, inputs: dict, vehicle: VehicleParam
 
 
 # ------------------------------------------------------------------------------------ run
+def _case_vehicle(case: Case) -> VehicleParams:
+    """The vehicle as the case's nodes read it: its vehicle file with the case's layers over it
+    (a layer may say how the IMU is mounted)."""
+    from vehicle_estimation.launcher.node_plan import layered_params
+
+    layered = layered_params([case.vehicle, *(params_file(name) for name in case.params)])["mass"]
+    return VehicleParams.from_mapping({k.removeprefix("vehicle."): v for k, v in layered.items()
+                                       if k.startswith("vehicle.")})
+
+
 def _shipped_methods(params: Sequence[str] = ("estimation",)) -> dict[str, str]:
     """Each node's method under the parameter files ``params`` layered in order, as the nodes
     read them (``/**`` and the node's section; the node's default where no file sets it)."""
@@ -473,10 +472,10 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
                 progress=progress)
         except ReplayError as exc:
             raise RuntimeError(f"replay of {case.name} failed: {exc}; logs in {run_dir / 'logs'}") from exc
-        vehicle = load_vehicle_params(case.vehicle)
+        vehicle = _case_vehicle(case)
         case_methods = _shipped_methods(case.params)
         est = _read_estimates(estimates)     # once: both kinds score the same recording
-        inputs = _read_sensor_inputs(case.bag)
+        inputs = baselines.read_sensor_inputs(case.bag, vehicle.imu_mounting_rpy)
         series: dict = {}
         case_rows = []
         if "lateral" in case.kinds:

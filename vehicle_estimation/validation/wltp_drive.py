@@ -317,7 +317,7 @@ def simulate(duration: float | None = None, *, payload: float = 0.0, road: str =
 
 
 # --------------------------------------------------------------------------- sensors
-def sensor_result(drive: Drive, *, seed: int = 0):
+def sensor_result(drive: Drive, *, seed: int = 0, imu_rpy_deg=(0.0, 0.0, 0.0)):
     """A :class:`~vehicle_estimation.sim.simulate.SimResult`-like object (``sensors``, ``truth``)
     that :func:`vehicle_estimation.sim.bag.build_streams` accepts."""
     rng = np.random.default_rng(seed)
@@ -325,7 +325,7 @@ def sensor_result(drive: Drive, *, seed: int = 0):
     tru = rd.road_truth(t, drive.speed, drive.slope, mass=drive.mass, gravity=G_MODEL, heading_deg=HEADING_DEG)
 
     imu = rd.imu_samples(rng, tru, rd.every(t, IMU_RATE_HZ), accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE,
-                         accel_bias=ACCEL_BIAS, gyro_bias=GYRO_BIAS)
+                         accel_bias=ACCEL_BIAS, gyro_bias=GYRO_BIAS, mounting_rpy_deg=imu_rpy_deg)
 
     j = rd.every(t, CAN_RATE_HZ)
     v = tru["vx"][j]
@@ -425,15 +425,18 @@ VARIANTS = {   # suffix: (gnss, wheels)
 }
 
 
-def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None) -> list[Path]:
+def generate(out_dir: Path, *, seed: int = 0, duration: float | None = None,
+             imu_rpy_deg=(0.0, 0.0, 0.0)) -> list[Path]:
     """The drives of :data:`DRIVES` in every variant of :data:`VARIANTS` in ``out_dir`` plus the
-    vehicle file ``wltp_midsize_petrol.yaml``; returns the bag paths."""
+    vehicle file ``wltp_midsize_petrol.yaml``; returns the bag paths. ``imu_rpy_deg``: the IMU's roll, pitch, yaw in
+    ``base_link`` [deg] (:func:`~.road_drive.imu_samples`)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(params_yaml(), encoding="utf-8")
+    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(rd.with_imu_mounting(params_yaml(), imu_rpy_deg), encoding="utf-8")
     paths = []
     for name, (payload, road, offset) in DRIVES.items():
-        result = sensor_result(simulate(duration, payload=payload, road=road), seed=seed + offset)
+        result = sensor_result(simulate(duration, payload=payload, road=road), seed=seed + offset,
+                               imu_rpy_deg=imu_rpy_deg)
         paths += [write_drive(result, out_dir / f"{name}{suffix}", gnss=gnss, wheels=wheels)
                   for suffix, (gnss, wheels) in VARIANTS.items()]
     return paths
