@@ -254,3 +254,20 @@ def test_the_joint_covariance_is_the_spread_of_refitted_vehicle_values():
     B_slow[:, 0] = 0.6 * slow * slow / 40.0
     fits, sigmas = _refits(rng, X, B_slow, zeta)
     assert sigmas.mean(axis=0)[3] == pytest.approx(fits.std(axis=0)[3], rel=0.2)
+
+
+def test_calibrate_reads_a_turned_imus_forward_specific_force(tmp_path):
+    """The kinematic grade of the calibration starts from f_x in base_link: an IMU facing left
+    (its -y forward) read with the vehicle file's mounting gives the level IMU's f_x, less the
+    noise and bias the turn moves between axes; read as if level, it gives the lateral one."""
+    from vehicle_estimation.training.calibrate import read_drive
+    from vehicle_estimation.validation import wltp_drive
+
+    level = wltp_drive.generate(tmp_path / "level", duration=30.0, seed=2)[0]
+    turned = wltp_drive.generate(tmp_path / "turned", duration=30.0, seed=2, imu_rpy_deg=(0.0, 0.0, 90.0))[0]
+    mounting = load_vehicle_params(tmp_path / "turned" / f"{wltp_drive.VEHICLE_NAME}.yaml").imu_mounting_rpy
+    reference = read_drive(level).accel_x
+    read = read_drive(turned, None, mounting).accel_x
+    assert np.abs(read - reference).max() < 0.5                  # 2 x (0.05 bias + 5 sigma of 0.05 noise)
+    assert np.std(reference) > 0.3                                 # a drive that accelerates
+    assert np.abs(read_drive(turned).accel_x - reference).max() > 1.0

@@ -358,7 +358,7 @@ def calibrate_vehicle(vehicle_id: str, bag: str, mass: float, base_vehicle: str,
     result: dict[str, Any] = {"vehicle_id": vehicle_id, "bag": bag, "mass_kg": mass, "params": out_path}
     try:
         base = load_vehicle_params(base_vehicle)
-        fitted = calibrate_signals(read_drive(Path(bag), None), mass, base)
+        fitted = calibrate_signals(read_drive(Path(bag), None, base.imu_mounting_rpy), mass, base)
         header = (f"Calibrated by `batch --calibrate` for vehicle {vehicle_id} from {Path(bag).name} at {mass:g} kg\n"
                   f"(paper 003 Sec. 6, Eqs. 48-50). Torque fit R^2 = {fitted.fit.r2:.4f}.")
         write_params(out_path, params_document(fitted, base, mass), header)

@@ -43,6 +43,7 @@ import numpy as np
 import yaml
 
 from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
 from vehicle_estimation.estimators.mass import calibration as cal
 from vehicle_estimation.estimators.mass.update_window import (window_edges, window_ids, window_max, window_mean,
                                                                window_slope)
@@ -259,13 +260,16 @@ def _match_topic(available: list[str], relative: str) -> str | None:
     return suffix[0] if len(suffix) == 1 else None
 
 
-def read_drive(bag: str | Path, slope_topic: str | None = None) -> DriveSignals:
-    """Signals of the topic contract from a rosbag2 (MCAP or sqlite3) via ``rosbags``."""
+def read_drive(bag: str | Path, slope_topic: str | None = None, imu_mounting_rpy=(0.0, 0.0, 0.0)) -> DriveSignals:
+    """Signals of the topic contract from a rosbag2 (MCAP or sqlite3) via ``rosbags``; the IMU's
+    forward specific force in base_link, turned by ``imu_mounting_rpy`` (``vehicle.*``)."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     wanted = {"speed": topics.SPEED, "powertrain": topics.POWERTRAIN, "joints": topics.JOINT_STATES,
               "imu": topics.IMU, "gnss": topics.GNSS}
+    # base_link x in imu_link's axes: the row of imu_link -> base_link that gives f_x
+    forward = quat_to_rotmat(quat_from_euler(*(float(a) for a in imu_mounting_rpy)))[0]
     if slope_topic:
         wanted["slope"] = slope_topic
     rows: dict[str, list[tuple]] = {k: [] for k in wanted}
@@ -295,7 +299,8 @@ def read_drive(bag: str | Path, slope_topic: str | None = None) -> DriveSignals:
                 b = [_joint(msg, j, "effort") for j in topics.WHEEL_JOINTS]
                 rows[key].append((t, *w, float(np.nansum(b)) if np.any(np.isfinite(b)) else math.nan))
             elif key == "imu":
-                rows[key].append((t, float(msg.linear_acceleration.x)))
+                a = msg.linear_acceleration
+                rows[key].append((t, float(forward @ (a.x, a.y, a.z))))
             elif key == "gnss":
                 ok = int(msg.status.status) >= 0
                 rows[key].append((t, float(msg.altitude) if ok else math.nan))
@@ -438,7 +443,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         base_path = params_path(args.vehicle)
         base = load_vehicle_params(base_path)
-        sig = read_drive(bag, args.slope_topic)
+        sig = read_drive(bag, args.slope_topic, base.imu_mounting_rpy)
         result = calibrate_signals(sig, float(args.mass), base, n_gears=args.gears, width=args.width,
                                    speed_order=args.speed_order)
     except (ValueError, FileNotFoundError, OSError) as exc:

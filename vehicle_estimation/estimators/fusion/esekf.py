@@ -29,16 +29,16 @@ Beyond the paper: IMU mounting states.  The paper's IMU was calibrated to the bo
 car's IMU sits in ``imu_link``, rotated from ``base_link`` by a mounting rotation known
 only to a degree or so (REP-145).  The filter's attitude is the IMU's (what the gyros
 integrate), and two extra error states, the mounting pitch and yaw (about base_link y and
-z, whichever way the IMU is turned), map it to the vehicle: the non-holonomic and CAN-speed constraints hold in
-``base_link``, not in ``imu_link``, and they make the two angles observable once the car
-moves (pitch through the vertical constraint and the GNSS height, yaw through the lateral
-one).  Without them a 0.5 deg mounting pitch is 0.5 deg of grade error, and a 0.4 deg
-mounting roll leaks yaw rate into pitch rate in every curve.  The states need a tight
-vertical constraint (``nh_sigma_z`` <= 1 m/s; Table 3's 15 m/s leaves the mounting pitch
-unobservable), so they are off by default, as in the paper, and on in the shipped
-``params/estimation.yaml``.  Mounting roll is not
-observable from the constraints; ``mounting_rpy`` gives the nominal mounting (roll
-included) and the states refine pitch and yaw from there.  Every output (orientation,
+z, whichever way the IMU is turned), map it to the vehicle: the non-holonomic and
+CAN-speed constraints hold in ``base_link``, not in ``imu_link``, and they make the two
+angles observable once the car moves (pitch through the vertical constraint and the GNSS
+height, yaw through the lateral one).  Without them a 0.5 deg mounting pitch is 0.5 deg of
+grade error, and a 0.4 deg mounting roll leaks yaw rate into pitch rate in every curve.
+The states need a tight vertical constraint (``nh_sigma_z`` <= 1 m/s; Table 3's 15 m/s
+leaves the mounting pitch unobservable), so they are off by default, as in the paper, and
+on in the shipped ``params/estimation.yaml``.  Mounting roll is not observable from the
+constraints; ``mounting_rpy`` (the node's ``vehicle.imu_mounting_rpy``) gives the nominal
+mounting (roll included) and the states refine pitch and yaw from there.  Every output (orientation,
 grade, body velocity, compensated IMU) is in ``base_link``.
 
 Frames and conventions (REP-103): body = FLU (x forward, y left, z up); world = ENU.
