@@ -178,7 +178,12 @@ def test_before_the_fusion_speaks_the_imu_is_turned_by_the_vehicles_mounting():
 
 def test_the_state_node_reads_a_turned_imus_stated_noise_in_base_link():
     from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
-    from vehicle_estimation.ros.state_node import _stated_imu_variances
+    from vehicle_estimation.ros.conversions import add_stated_imu_covariances, base_link_imu_variances
+
+    def _stated_imu_variances(msg, mounting):
+        covariances = np.zeros((2, 9))
+        add_stated_imu_covariances(covariances, msg)
+        return tuple(base_link_imu_variances(covariances, mounting))
 
     msg = Imu()
     msg.linear_acceleration_covariance = [0.1, 0.0, 0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.9]

@@ -16,7 +16,7 @@ import yaml
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS, merge_ros_parameters
-from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 from vehicle_estimation.estimators.registry import DEFAULT_NO_SPEED_FILTER, NO_SPEED_HOLD_S, STATE_FILTERS
 from vehicle_estimation.estimators.state.core import DEFAULT_CORNERING_ACCEL_STD
 from vehicle_estimation.io.bag_survey import InspectError, TopicStats
@@ -148,7 +148,7 @@ def _mounting_lines(stats: TopicStats | None, fusion: dict[str, Any]) -> list[st
     values = np.asarray(stats.start_values, dtype=float) if stats else np.empty((0, 6))
     if values.shape[0] < 2 or not np.isfinite(values[:, :3]).all():
         return lines
-    f = quat_to_rotmat(quat_from_euler(*rpy)) @ values[:, :3].mean(axis=0)
+    f = rotmat_from_euler(*rpy) @ values[:, :3].mean(axis=0)
     norm = float(np.linalg.norm(f))
     if not 5.0 <= norm <= 15.0:
         return lines

@@ -159,6 +159,23 @@ def imu_rejection(f: np.ndarray, w: np.ndarray) -> str | None:
     return "imu:implausible"
 
 
+def add_stated_imu_covariances(total: np.ndarray, msg: Any) -> None:
+    """Add the accelerometer's and the gyro's covariances an IMU message states (imu_link, row
+    by row) to ``total[0]`` and ``total[1]``; one that is unknown (REP-145: -1 first) or not
+    finite adds nothing."""
+    for k, cov in enumerate((msg.linear_acceleration_covariance, msg.angular_velocity_covariance)):
+        if cov[0] >= 0.0 and math.isfinite(sum(cov)):      # a NaN or an inf makes the sum so
+            total[k] += cov
+
+
+def base_link_imu_variances(covariances: np.ndarray, mounting: np.ndarray) -> np.ndarray:
+    """[ax, ay, yaw rate] variances in base_link of the accelerometer's and gyro's covariances
+    ``covariances[0]``, ``covariances[1]`` in imu_link (row by row), turned by ``mounting``
+    (imu_link -> base_link)."""
+    diagonals = ((mounting @ covariances.reshape(2, 3, 3)) * mounting).sum(axis=2)   # of M C M^T
+    return np.maximum(np.array([diagonals[0, 0], diagonals[0, 1], diagonals[1, 2]]), 0.0)
+
+
 def speed_reading(msg: Any) -> tuple[float, float] | None:
     """(speed [m/s], variance [m^2/s^2] or NaN when the message gives none) of a
     ``vehicle/speed`` message, None for a non-finite or absurd speed."""

@@ -86,7 +86,8 @@ from vehicle_estimation.estimators.state.core import (
     RollAccelerationTerm, SpeedPresence)
 from vehicle_estimation.estimators.state.vehicle_model import VehicleInputs
 from vehicle_estimation.ros.conversions import (
-    MAX_SPEED, MalformedMessage, chassis_reading, lateral_gravity_entry)
+    MAX_SPEED, MalformedMessage, add_stated_imu_covariances, base_link_imu_variances, chassis_reading,
+    lateral_gravity_entry)
 from vehicle_estimation.ros.cdr import StampedLayout, float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
@@ -221,7 +222,7 @@ class StateNode(EstimatorNode):
         self._first_imu_t: float | None = None
         self._vx_measured = False     # by wheel speeds or vehicle/speed at the last filter step
         self._z_sum = np.zeros(3)
-        self._imu_noise_sum = np.zeros(3)   # the IMU's stated [ax, ay, r] variances, summed
+        self._imu_cov_sum = np.zeros((2, 9))   # the IMU's stated covariances (imu_link), summed
         # the IMU above the roll axis feels the body's roll acceleration (vehicle.roll_lever)
         self._roll_acceleration = RollAccelerationTerm(self.vehicle.roll_lever)
         self._roll_ay_variance = 0.0   # g^2 var(roll) of the last fusion attitude used [(m/s^2)^2]
@@ -453,7 +454,7 @@ class StateNode(EstimatorNode):
         # a 200 Hz or 1 kHz IMU costs what a 100 Hz one does, and the mean is the better
         # measurement of the interval than any one sample.
         if self.core.learns_measurement_noise:
-            self._imu_noise_sum += _stated_imu_variances(msg, self.bias.mounting_at(t))
+            add_stated_imu_covariances(self._imu_cov_sum, msg)
         self._z_sum += (f[0], f[1] - self._roll_gravity(t), w[2])
         self._roll_acceleration.add(w[0])
         self._z_count += 1
@@ -485,8 +486,9 @@ class StateNode(EstimatorNode):
         # process noise); the IMU's stated noise of the step's mean is a floor under it: what
         # the learnt R falls short of it is added, so R is never below the sensor's own noise
         # and a learnt R above it is not counted twice.
-        floor = self._imu_noise_sum / (count * count)
-        self._imu_noise_sum[:] = 0.0
+        # turned into base_link once a step, not per sample: a turn is linear in the covariance
+        floor = base_link_imu_variances(self._imu_cov_sum, self.bias.mounting_at(t)) / (count * count)
+        self._imu_cov_sum[:] = 0.0
         if floor.any():
             floor = np.maximum(floor - self.core.measurement_noise_diagonal, 0.0)
         self.core.set_known_noise(ax=floor[0], ay=floor[1] + roll_noise, r=floor[2])
@@ -550,7 +552,7 @@ class StateNode(EstimatorNode):
         self._vx_measured = False
         self._last_pub = -math.inf
         self._z_sum[:] = 0.0
-        self._imu_noise_sum[:] = 0.0
+        self._imu_cov_sum[:] = 0.0
         self._z_count = 0
         self._last_speed_used_t = -math.inf
         self._roll_acceleration.reset()
@@ -573,19 +575,6 @@ class StateNode(EstimatorNode):
 def _rear_wheels_measured(wheel_speeds: np.ndarray) -> bool:
     """Whether both rear wheel speeds are there: the filters read vx from them."""
     return bool(np.isfinite(wheel_speeds[2:]).all())
-
-
-def _stated_imu_variances(msg: Imu, mounting: np.ndarray) -> tuple[float, float, float]:
-    """The variances of ax, ay and the yaw rate in base_link that an IMU message states in its
-    imu_link, turned by ``mounting`` (imu_link -> base_link; REP-145: a covariance of zeros,
-    or -1 first, is unknown: 0)."""
-    def turned(cov) -> np.ndarray | None:
-        c = np.reshape(np.asarray(cov, float), (3, 3))
-        return None if c[0, 0] < 0.0 or not np.isfinite(c).all() else mounting @ c @ mounting.T
-
-    a, w = turned(msg.linear_acceleration_covariance), turned(msg.angular_velocity_covariance)
-    ax, ay = (0.0, 0.0) if a is None else (max(a[0, 0], 0.0), max(a[1, 1], 0.0))
-    return ax, ay, 0.0 if w is None else max(w[2, 2], 0.0)
 
 
 def main(args: list[str] | None = None) -> int:

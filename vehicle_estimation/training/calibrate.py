@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from vehicle_estimation.contract import topics
-from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 from vehicle_estimation.estimators.mass import calibration as cal
 from vehicle_estimation.estimators.mass.update_window import (window_edges, window_ids, window_max, window_mean,
                                                                window_slope)
@@ -269,7 +269,7 @@ def read_drive(bag: str | Path, slope_topic: str | None = None, imu_mounting_rpy
     wanted = {"speed": topics.SPEED, "powertrain": topics.POWERTRAIN, "joints": topics.JOINT_STATES,
               "imu": topics.IMU, "gnss": topics.GNSS}
     # base_link x in imu_link's axes: the row of imu_link -> base_link that gives f_x
-    forward = quat_to_rotmat(quat_from_euler(*(float(a) for a in imu_mounting_rpy)))[0]
+    forward = rotmat_from_euler(*(float(a) for a in imu_mounting_rpy))[0]
     if slope_topic:
         wanted["slope"] = slope_topic
     rows: dict[str, list[tuple]] = {k: [] for k in wanted}

@@ -42,7 +42,7 @@ from scipy import signal
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.contract.vehicle import GRAVITY, VehicleParams
-from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 
 #: Corner of the kinematic grade's low-pass [Hz]: the accelerometer's vibration and the
 #: differentiated speed's quantisation are far above it, a road's grade changes below it.
@@ -222,7 +222,7 @@ def read_sensor_inputs(bag: Path, imu_mounting_rpy=(0.0, 0.0, 0.0)) -> dict[str,
                 effort = dict(zip(msg.name, msg.effort))
                 force.append((t, effort.get(T.DRIVE_JOINT, math.nan)))
     imu_a = np.array(imu, dtype=float).reshape(-1, 7)
-    C = quat_to_rotmat(quat_from_euler(*(float(a) for a in imu_mounting_rpy)))     # imu_link -> base_link
+    C = rotmat_from_euler(*(float(a) for a in imu_mounting_rpy))     # imu_link -> base_link
     f, w = imu_a[:, 1:4] @ C.T, imu_a[:, 4:7] @ C.T
     speed_a, force_a = (np.array(x, dtype=float).reshape(-1, 2) for x in (speed, force))
     enu = np.zeros((0, 3))

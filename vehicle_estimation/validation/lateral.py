@@ -54,7 +54,7 @@ from vehicle_estimation.validation.baselines import baseline_linear_kf
 from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_params, merge_ros_parameters
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.estimators.common.guard import STAMP_TOLERANCE_S
-from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 
 PARAMS_FILE = params_file("commonroad_bmw320i")
 FILTER_RATE_HZ = 100.0
@@ -111,7 +111,7 @@ def read_drive(bag: Path, imu_mounting_rpy=(0.0, 0.0, 0.0)) -> dict[str, dict[st
     arr = {k: np.array(v, dtype=float).reshape(-1, widths[k]) for k, v in rows.items()}
     imu, js, sp, gt, gb, go = (arr[T.IMU], arr[T.JOINT_STATES], arr[T.SPEED], arr[T.GT_VEHICLE_STATE],
                                arr[T.GT_SIDESLIP], arr[T.GT_ODOMETRY])
-    C = quat_to_rotmat(quat_from_euler(*(float(a) for a in imu_mounting_rpy)))     # imu_link -> base_link
+    C = rotmat_from_euler(*(float(a) for a in imu_mounting_rpy))     # imu_link -> base_link
     return {
         "imu": {"t": imu[:, 0], "f": imu[:, 1:4] @ C.T, "w": imu[:, 4:7] @ C.T},
         "joints": {"t": js[:, 0], "wheels": js[:, 1:5], "steering_wheel": js[:, 5]},

@@ -19,7 +19,7 @@ import numpy as np
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
-from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 from vehicle_estimation.sim import bag as simbag
 
 #: Truth keys a bag's ground-truth topics are written from.
@@ -101,7 +101,7 @@ def imu_samples(rng: np.random.Generator, truth: dict, idx: np.ndarray, *, accel
     a_bias = accel_bias * rng.choice([-1.0, 1.0], 3)
     g_bias = gyro_bias * rng.choice([-1.0, 1.0], 3)
     # rows are vectors: v_imu = C^T v_base is v_base @ C, C imu_link -> base_link
-    C = quat_to_rotmat(quat_from_euler(*np.radians(np.asarray(mounting_rpy_deg, float))))
+    C = rotmat_from_euler(*(math.radians(float(a)) for a in mounting_rpy_deg))
     gyro = np.column_stack([truth["wx"], truth["wy"], truth["wz"]])
     accel = truth["accel"][idx] @ C + a_bias + accel_noise * rng.standard_normal((idx.size, 3))
     gyro = gyro[idx] @ C + g_bias + gyro_noise * rng.standard_normal((idx.size, 3))
@@ -196,8 +196,7 @@ def format_vehicle_yaml(header: list[str], values: dict, notes: dict[str, str]) 
         if isinstance(value, str):
             text = value
         elif isinstance(value, list):
-            # repr keeps "1.0" a float: a ROS params file refuses an array of mixed types.
-            text = "[" + ", ".join(repr(float(x)) for x in value) + "]"
+            text = _float_list(value)
         else:
             text = repr(round(float(value), 6))
         note = notes.get(key, "")
@@ -211,6 +210,12 @@ def with_imu_mounting(vehicle_yaml: str, imu_rpy_deg) -> str:
     unchanged for a level IMU."""
     if not any(imu_rpy_deg):
         return vehicle_yaml
-    text = "[" + ", ".join(repr(math.radians(float(a))) for a in imu_rpy_deg) + "]"
+    text = _float_list([math.radians(float(a)) for a in imu_rpy_deg])
     degrees = ", ".join(f"{float(a):g}" for a in imu_rpy_deg)
     return vehicle_yaml + f"      imu_mounting_rpy: {text}   # the drive's imu_link, roll, pitch, yaw {degrees} deg\n"
+
+
+def _float_list(values) -> str:
+    """A YAML flow list of floats; repr keeps "1.0" a float: a ROS params file refuses an array
+    of mixed types."""
+    return "[" + ", ".join(repr(float(x)) for x in values) + "]"

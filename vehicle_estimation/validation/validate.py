@@ -128,16 +128,19 @@ def _without_gnss_and_wheels(bag: Path) -> Path:
     return out
 
 
-def _fastsim_cases(root: Path, *, quick: bool) -> list[Case]:
+def _fastsim_cases(root: Path, *, quick: bool, folder_name: str = "fastsim",
+                  imu_rpy_deg=(0.0, 0.0, 0.0)) -> list[Case]:
+    """The FASTSim car drive's variants in ``root/folder_name``, its IMU at ``imu_rpy_deg`` in
+    base_link (:func:`.fastsim_drive.generate`); [] without FASTSim."""
     try:
         from vehicle_estimation.validation import fastsim_drive
     except ImportError:
         return []
     try:
-        folder = root / "fastsim"
+        folder = root / folder_name
         paths = [folder / name for name in fastsim_drive.VARIANTS]
         if not all(p.exists() for p in paths):      # else made by an earlier group of this run
-            paths = fastsim_drive.generate(folder, duration=120.0 if quick else None)
+            paths = fastsim_drive.generate(folder, duration=120.0 if quick else None, imu_rpy_deg=imu_rpy_deg)
     except ImportError as exc:          # the module is there, the library is not
         print(f"[validate] no FASTSim cases: {exc}")
         return []
@@ -154,23 +157,14 @@ TURNED_IMU_RPY_DEG, TURNED_IMU_NOMINAL_DEG = (0.5, 0.0, 90.3), (0.0, 0.0, 90.0)
 def _turned_imu_cases(root: Path, *, quick: bool) -> list[Case]:
     """The FASTSim car drive with and without GNSS, its IMU facing left and a little off, and
     the vehicle file saying only that it faces left: the mounting states learn the rest."""
-    try:
-        from vehicle_estimation.validation import fastsim_drive
-        folder = root / "fastsim_turned_imu"
-        paths = [folder / name for name in fastsim_drive.VARIANTS]
-        if not all(p.exists() for p in paths):
-            paths = fastsim_drive.generate(folder, duration=120.0 if quick else None, imu_rpy_deg=TURNED_IMU_RPY_DEG)
-    except ImportError as exc:
-        print(f"[validate] no turned-IMU cases: {exc}")
-        return []
+    cases = _fastsim_cases(root, quick=quick, folder_name="fastsim_turned_imu", imu_rpy_deg=TURNED_IMU_RPY_DEG)
     layer = root / "layers" / "imu_facing_left.yaml"
     layer.parent.mkdir(parents=True, exist_ok=True)
     nominal = ", ".join(repr(math.radians(a)) for a in TURNED_IMU_NOMINAL_DEG)
     layer.write_text(f"/**:\n  ros__parameters:\n    vehicle.imu_mounting_rpy: [{nominal}]\n", encoding="utf-8")
-    source = "NREL FASTSim 3.1.0, the IMU turned: roll, pitch, yaw " + ", ".join(f"{a:g}" for a in TURNED_IMU_RPY_DEG)
-    return [Case(f"{Path(p).name}_imu_facing_left", source, Path(p), folder / f"{fastsim_drive.VEHICLE_NAME}.yaml",
-                 ("longitudinal",), params=("estimation", str(layer)))
-            for p in paths if Path(p).name in METHOD_FASTSIM_DRIVES]
+    turned = ", the IMU turned: roll, pitch, yaw " + ", ".join(f"{a:g}" for a in TURNED_IMU_RPY_DEG)
+    return [replace(c, name=f"{c.name}_imu_facing_left", source=c.source + turned, params=("estimation", str(layer)))
+            for c in cases if c.name in METHOD_FASTSIM_DRIVES]
 
 
 def _truck_cases(root: Path, *, quick: bool) -> list[Case]:

@@ -16,7 +16,7 @@ import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.serialization import deserialize_message
 
-from vehicle_estimation.estimators.common.rotations import quat_from_euler, quat_to_rotmat
+from vehicle_estimation.estimators.common.rotations import quat_to_rotmat, rotmat_from_euler
 from vehicle_estimation.ros.cdr import StampedLayout
 from vehicle_estimation.ros.stamps import sec_to_ns, stamp_to_sec
 
@@ -121,7 +121,7 @@ class FusionImuBias:
     def __init__(self, mounting_rpy=(0.0, 0.0, 0.0)) -> None:
         self.history = UpstreamHistory(horizon_s=5.0)
         self.valid = False
-        self.nominal_mounting = quat_to_rotmat(quat_from_euler(*(float(a) for a in mounting_rpy)))
+        self.nominal_mounting = rotmat_from_euler(*(float(a) for a in mounting_rpy))
 
     @staticmethod
     def convert(msg: Any) -> tuple[float, Any] | None:
