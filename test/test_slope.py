@@ -237,6 +237,25 @@ def test_road_slope_takes_the_suspension_pitch_out_of_both_sources():
     assert core.suspension.t is None and math.isnan(core.grade.slope) and core.auto.source == SOURCE_OBSERVER
 
 
+@pytest.mark.parametrize("name", ["classical", "cubic_prediction"])
+def test_an_observer_alone_publishes_its_input_bias_in_the_variance(name):
+    """The observer's covariance has no bias state: a bias left in its specific force is a
+    slope error of bias / g, which the published variance must carry with one source as with
+    ``auto`` (the fusion's bias variance, or the turn-on bias while the fusion has none)."""
+    vehicle = VehicleParams()
+    method = SLOPE_METHODS[name]
+    core = method.build(vehicle, method.config_type())
+    g = vehicle.gravity
+    core.step(0.0, 0.0, 0.0, velocity=(10.0, 0.0), accel_bias_variance=0.02 ** 2)
+    assert core.variance == pytest.approx(core.observer.variance + (0.02 / g) ** 2, rel=1e-12)
+    turn_on = core.observer.config.uncompensated_accel_bias_std
+    for bias_variance in (None, math.nan):
+        core.step(0.01, 0.0, 0.0, velocity=(10.0, 0.0), accel_bias_variance=bias_variance)
+        assert core.variance == pytest.approx(core.observer.variance + (turn_on / g) ** 2, rel=1e-12)
+    core.reset()
+    assert core.variance == core.observer.variance
+
+
 def test_road_slope_needs_one_source_or_two_with_a_selection():
     vehicle = VehicleParams()
     with pytest.raises(ValueError, match="needs"):

@@ -55,8 +55,6 @@ def test_does_not_switch_to_a_source_without_an_estimate():
     assert auto.source == SOURCE_OBSERVER
 
 
-@pytest.mark.parametrize("field, value", [("switch_time_constant_s", 0.0),
-                                          ("uncompensated_accel_bias_std", -1.0)])
-def test_config_validation_names_the_field(field, value):
-    with pytest.raises(ValueError, match=field):
-        AutoSlopeConfig(**{field: value}).validate()
+def test_config_validation_names_the_field():
+    with pytest.raises(ValueError, match="switch_time_constant_s"):
+        AutoSlopeConfig(switch_time_constant_s=0.0).validate()

@@ -43,10 +43,6 @@ class AutoSlopeConfig:
     switch_time_constant_s: float = setting(
         2.0, "The offset between the sources at a switch fades out with this time constant [s]",
         low=0.0, low_open=True)
-    uncompensated_accel_bias_std: float = setting(
-        0.05, "Std of an accelerometer bias the observer cannot remove while the fusion's bias estimate "
-        "is missing [m/s^2]; enters the observer's variance as (std / g)^2 (0.05: a typical MEMS "
-        "turn-on bias)", low=0.0)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field."""

@@ -79,6 +79,10 @@ class ClassicalSlopeConfig:
     converged_std: float = setting(0.005, "Converged once sqrt(variance) is below this (and min_converge_time "
                                    "has passed) [rad]", low=0.0, low_open=True)
     min_converge_time: float = setting(2.0, "Converged no sooner than this after (re)initialisation [s]", low=0.0)
+    uncompensated_accel_bias_std: float = setting(
+        0.05, "Std of an accelerometer bias the observer cannot remove while the fusion's bias estimate "
+        "is missing [m/s^2]; enters the published variance as (std / g)^2 (0.05: a typical MEMS "
+        "turn-on bias)", low=0.0)
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad field."""

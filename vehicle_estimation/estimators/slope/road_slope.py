@@ -72,6 +72,7 @@ class RoadSlopeEstimator:
         else:
             raise ValueError("a slope method needs the fusion grade, an observer or both")
         self.suspension = SuspensionPitch(vehicle.pitch_gain, vehicle.pitch_time_constant)
+        self._observer_bias_variance = 0.0   # [rad^2], the observer's input bias as a slope
 
     @property
     def uses_grade(self) -> bool:
@@ -117,12 +118,15 @@ class RoadSlopeEstimator:
             ax = accel_x - self.gravity * math.sin(squat)
             if not self.observer.step(t, ax, velocity[0], yaw_rate=yaw_rate, vy=velocity[1]):
                 rejected += 1
-        if self.auto is not None:
+        if self.observer is not None:
             # The accelerometer bias left in the observer's input goes into its slope one to one:
             # the fusion's bias uncertainty, or without the fusion the sensor's turn-on bias.
-            if accel_bias_variance is None:
-                accel_bias_variance = self.auto.config.uncompensated_accel_bias_std ** 2
-            self.auto.update(t, grade_usable, accel_bias_variance / self.gravity ** 2)
+            # The observer's own covariance has no bias state, so this is all that says so.
+            if accel_bias_variance is None or not math.isfinite(accel_bias_variance):
+                accel_bias_variance = self.observer.config.uncompensated_accel_bias_std ** 2
+            self._observer_bias_variance = accel_bias_variance / self.gravity ** 2
+        if self.auto is not None:
+            self.auto.update(t, grade_usable, self._observer_bias_variance)
         return rejected
 
     @property
@@ -132,6 +136,8 @@ class RoadSlopeEstimator:
 
     @property
     def variance(self) -> float:
+        if self.published is self.observer:
+            return self.observer.variance + self._observer_bias_variance
         return self.published.variance
 
     @property
@@ -140,6 +146,7 @@ class RoadSlopeEstimator:
 
     def reset(self) -> None:
         self.suspension.reset()
+        self._observer_bias_variance = 0.0
         for part in (self.grade, self.observer, self.auto):
             if part is not None:
                 part.reset()
