@@ -210,20 +210,25 @@ def test_validate_into_a_used_out_stops_with_a_message(tmp_path, used, cases):
 
 
 def test_turned_imu_cases_give_the_replay_only_the_nominal_mounting(tmp_path, monkeypatch):
-    """The FASTSim drive with and without GNSS, made with the IMU turned by
-    TURNED_IMU_RPY_DEG; each replay gets a layer with the nominal mounting only (facing left),
-    so the fusion has the rest to learn."""
+    """The FASTSim drive with and without GNSS and CommonRoad's manoeuvres (the lateral path),
+    made with the IMU turned by TURNED_IMU_RPY_DEG; each replay gets a layer with the nominal
+    mounting only (facing left), so the fusion has the rest to learn."""
     from vehicle_estimation.contract.vehicle import read_ros_params_file
-    from vehicle_estimation.validation import fastsim_drive, validate
+    from vehicle_estimation.validation import commonroad, fastsim_drive, validate
 
     calls = []
     monkeypatch.setattr(fastsim_drive, "generate", lambda folder, **kw: calls.append(kw) or [
         folder / name for name in fastsim_drive.VARIANTS])
+    monkeypatch.setattr(commonroad, "generate", lambda folder, **kw: calls.append(kw) or [
+        folder / f"commonroad_{m}" for m in kw["manoeuvres"]])
     cases = validate._turned_imu_cases(tmp_path, quick=True)
-    assert calls == [{"duration": 120.0, "imu_rpy_deg": validate.TURNED_IMU_RPY_DEG}]
-    assert [c.name for c in cases] == ["fastsim_hills_imu_facing_left", "fastsim_hills_no_gnss_imu_facing_left"]
+    assert calls == [{"duration": 120.0, "imu_rpy_deg": validate.TURNED_IMU_RPY_DEG},
+                     {"manoeuvres": ["dlc"], "duration": 14.0, "imu_rpy_deg": validate.TURNED_IMU_RPY_DEG}]
+    assert [c.name for c in cases] == ["fastsim_hills_imu_facing_left", "fastsim_hills_no_gnss_imu_facing_left",
+                                       "commonroad_dlc_imu_facing_left"]
+    assert [c.kinds for c in cases] == [("longitudinal",)] * 2 + [("lateral",)]
     layer = Path(cases[0].params[1])
-    assert cases[0].params == cases[1].params == ("estimation", str(layer))
+    assert cases[0].params == cases[1].params == cases[2].params == ("estimation", str(layer))
     nominal = read_ros_params_file(layer)["vehicle.imu_mounting_rpy"]
     np.testing.assert_allclose(nominal, np.radians(validate.TURNED_IMU_NOMINAL_DEG), rtol=0, atol=1e-15)
 

@@ -38,6 +38,33 @@ def test_simulation_deterministic(trajectory):
     np.testing.assert_array_equal(short.x, trajectory.x[:short.x.shape[0]])
 
 
+def test_a_turned_imu_reads_the_same_motion_and_vibration_in_its_own_axes(trajectory, result):
+    """``imu_rpy_deg``: the level drive's IMU signal (motion and the body's vibration alike)
+    turned into imu_link, v_imu = C^T v_base, with the same sensor noise and biases in the
+    IMU's own axes; the vehicle file says how the IMU sits."""
+    from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
+
+    rpy = (0.5, 0.0, 90.3)
+    turned = cr.sensor_result(trajectory, vibration_std=1.0, seed=3, imu_rpy_deg=rpy)
+    level, imu = result.sensors["imu"], turned.sensors["imu"]
+    C = rotmat_from_euler(*np.radians(rpy))
+    for key, bias, noise in (("accel", "bias_accel", cr.ACCEL_NOISE), ("gyro", "bias_gyro", cr.GYRO_NOISE)):
+        np.testing.assert_array_equal(imu[bias], level[bias])
+        # the same draws: what differs is the white noise w, as w - C^T w (the body's 1 m/s^2
+        # of vibration, turned like the motion, cancels)
+        difference = (imu[key] - imu[bias]) - (level[key] - level[bias]) @ C
+        assert np.std(difference) < 2.0 * noise
+    assert np.corrcoef(imu["accel"][:, 0], level["accel"][:, 1])[0, 1] > 0.9     # facing left: ay on x
+
+
+def test_generate_writes_the_mounting_into_the_vehicle_file(tmp_path):
+    from vehicle_estimation.contract.vehicle import read_ros_params_file
+
+    cr.generate(tmp_path, manoeuvres=["dlc"], duration=1.0, imu_rpy_deg=(0.0, 0.0, 90.0))
+    vehicle = read_ros_params_file(tmp_path / f"{cr.VEHICLE_NAME}.yaml")["vehicle"]
+    np.testing.assert_allclose(vehicle["imu_mounting_rpy"], [0.0, 0.0, math.pi / 2], rtol=0, atol=1e-15)
+
+
 def test_truth_sideslip_is_atan_vy_vx(result):
     tr = result.truth
     np.testing.assert_allclose(tr["sideslip"], np.arctan2(tr["vy"], tr["vx"]), atol=1e-12)

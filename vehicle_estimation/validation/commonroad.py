@@ -52,6 +52,7 @@ CLI: ``python -m vehicle_estimation.validation.commonroad --out DIR [--vibration
 from __future__ import annotations
 
 import argparse
+import math
 import types
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -61,6 +62,7 @@ import numpy as np
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 from vehicle_estimation.sim import bag as simbag
 from vehicle_estimation.sim.noise import band_limited_noise
 from vehicle_estimation.validation import road_drive as rd
@@ -320,9 +322,12 @@ def _every(t: np.ndarray, rate: float) -> np.ndarray:
     return np.arange(0, t.size, step)
 
 
-def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, mass: float | None = None):
+def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, mass: float | None = None,
+                  imu_rpy_deg=(0.0, 0.0, 0.0)):
     """A :class:`~vehicle_estimation.sim.simulate.SimResult`-like object (``sensors``, ``truth``)
-    that :func:`vehicle_estimation.sim.bag.build_streams` accepts."""
+    that :func:`vehicle_estimation.sim.bag.build_streams` accepts. ``imu_rpy_deg``: roll, pitch,
+    yaw of the IMU's imu_link in base_link [deg] (the vibration shakes the body, so it turns
+    with the rest of the signal; the noise and bias are the sensor's own)."""
     rng = np.random.default_rng(seed)
     tru = truth_signals(tr)
     t = tr.t
@@ -337,8 +342,10 @@ def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, 
     gyro = np.column_stack([tru["wx"], tru["wy"], tru["wz"]])
     a_bias = ACCEL_BIAS * rng.choice([-1.0, 1.0], 3)
     g_bias = GYRO_BIAS * rng.choice([-1.0, 1.0], 3)
-    accel = accel[i] + a_bias + ACCEL_NOISE * rng.standard_normal((i.size, 3))
-    gyro = gyro[i] + g_bias + GYRO_NOISE * rng.standard_normal((i.size, 3))
+    # rows are vectors: v_imu = C^T v_base is v_base @ C, C imu_link -> base_link
+    C = rotmat_from_euler(*(math.radians(float(a)) for a in imu_rpy_deg))
+    accel = accel[i] @ C + a_bias + ACCEL_NOISE * rng.standard_normal((i.size, 3))
+    gyro = gyro[i] @ C + g_bias + GYRO_NOISE * rng.standard_normal((i.size, 3))
     a_var = ACCEL_NOISE ** 2 + vibration_std ** 2
     imu = {"t": t[i], "accel": accel, "gyro": gyro, "gyro_cov": np.full(3, GYRO_NOISE ** 2),
            "accel_cov": np.full(3, a_var), "bias_accel": a_bias, "bias_gyro": g_bias}
@@ -396,16 +403,18 @@ def effective_rolling_radius(tr: Trajectory, *, wheels: Sequence[int] = (0, 1), 
 
 
 def generate(out_dir: Path, *, vibration_std: float = 0.0, seed: int = 0,
-             manoeuvres: Sequence[str] | None = None, duration: float | None = None) -> list[Path]:
+             manoeuvres: Sequence[str] | None = None, duration: float | None = None,
+             imu_rpy_deg=(0.0, 0.0, 0.0)) -> list[Path]:
     """One bag per manoeuvre in ``out_dir`` (``commonroad_<name>``) plus the vehicle file
-    ``commonroad_bmw320i.yaml``; returns the bag paths."""
+    ``commonroad_bmw320i.yaml``, which carries the IMU's mounting ``imu_rpy_deg`` (roll, pitch,
+    yaw in base_link [deg]); returns the bag paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(params_yaml(), encoding="utf-8")
+    (out_dir / f"{VEHICLE_NAME}.yaml").write_text(rd.with_imu_mounting(params_yaml(), imu_rpy_deg), encoding="utf-8")
     paths = []
     for index, name in enumerate(manoeuvres or MANOEUVRES):
         tr = simulate(name, duration=duration)
-        result = sensor_result(tr, vibration_std=vibration_std, seed=seed * 1000 + index)
+        result = sensor_result(tr, vibration_std=vibration_std, seed=seed * 1000 + index, imu_rpy_deg=imu_rpy_deg)
         paths.append(write_drive(result, out_dir / f"commonroad_{name}"))
     return paths
 
@@ -419,12 +428,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--manoeuvre", action="append", choices=list(MANOEUVRES), help="default: all")
     ap.add_argument("--duration", type=float, default=None, help="override the manoeuvre length [s]")
     ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
+    rd.add_imu_mounting_option(ap)
     args = ap.parse_args(argv)
     if args.write_params is not None:
         args.write_params.parent.mkdir(parents=True, exist_ok=True)   # often the --out folder, made below
-        args.write_params.write_text(params_yaml(), encoding="utf-8")
+        args.write_params.write_text(rd.with_imu_mounting(params_yaml(), args.imu_rpy_deg), encoding="utf-8")
     for path in generate(args.out, vibration_std=args.vibration_std, seed=args.seed,
-                         manoeuvres=args.manoeuvre, duration=args.duration):
+                         manoeuvres=args.manoeuvre, duration=args.duration, imu_rpy_deg=tuple(args.imu_rpy_deg)):
         print(path)
     return 0
 

@@ -172,9 +172,7 @@ def generator_main(argv, module, *, out_help: str) -> int:
     ap.add_argument("--out", type=Path, required=True, help=out_help)
     ap.add_argument("--duration", type=float, default=None, help=f"drive length [s] (default {module.FULL_DURATION:g})")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--imu-rpy-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "P", "Y"),
-                    help="the IMU's roll, pitch, yaw in base_link [deg]: imu/data is in that imu_link, "
-                         "and the vehicle files say so (vehicle.imu_mounting_rpy)")
+    add_imu_mounting_option(ap)
     ap.add_argument("--write-params", type=Path, default=None, help="also write the vehicle params file here")
     args = ap.parse_args(argv)
     if args.write_params is not None:
@@ -183,6 +181,13 @@ def generator_main(argv, module, *, out_help: str) -> int:
     for path in module.generate(args.out, seed=args.seed, duration=args.duration, imu_rpy_deg=tuple(args.imu_rpy_deg)):
         print(path)
     return 0
+
+
+def add_imu_mounting_option(ap) -> None:
+    """``--imu-rpy-deg R P Y`` of the generators (``args.imu_rpy_deg``)."""
+    ap.add_argument("--imu-rpy-deg", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "P", "Y"),
+                    help="the IMU's roll, pitch, yaw in base_link [deg]: imu/data is in that imu_link, "
+                         "and the vehicle files say so (vehicle.imu_mounting_rpy)")
 
 
 def format_vehicle_yaml(header: list[str], values: dict, notes: dict[str, str]) -> str:

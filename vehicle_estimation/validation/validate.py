@@ -23,6 +23,9 @@ Cases (``--cases``; default: all that can be made here):
   cruising a gentle long-haul road for 30 minutes in FASTSim, the low-excitation mass case
   (the regressor varies by ~0.07 m/s^2); longitudinal, as the FASTSim car. Each again as
   ``..._ta_aekf`` with ``params/heavy_truck_ta_aekf.yaml`` layered on (paper 000's TA-AEKF).
+* ``..._imu_facing_left`` (``turned_imu``): the FASTSim car with and without GNSS and the three
+  clean CommonRoad manoeuvres, their IMU turned by :data:`TURNED_IMU_RPY_DEG` and the replay
+  given only the nominal mounting :data:`TURNED_IMU_NOMINAL_DEG` (the fusion learns the rest).
 * ``sim_hills``: *our own* simulator's hilly drive, labelled as such: the filters share its
   model, so it is a reference row, not evidence.
 * ``methods``: every method a node offers besides the shipped one (the other state filters on
@@ -155,16 +158,28 @@ TURNED_IMU_RPY_DEG, TURNED_IMU_NOMINAL_DEG = (0.5, 0.0, 90.3), (0.0, 0.0, 90.0)
 
 
 def _turned_imu_cases(root: Path, *, quick: bool) -> list[Case]:
-    """The FASTSim car drive with and without GNSS, its IMU facing left and a little off, and
-    the vehicle file saying only that it faces left: the mounting states learn the rest."""
-    cases = _fastsim_cases(root, quick=quick, folder_name="fastsim_turned_imu", imu_rpy_deg=TURNED_IMU_RPY_DEG)
+    """The FASTSim car drive with and without GNSS and CommonRoad's three manoeuvres, their IMU
+    facing left and a little off, and the vehicle file saying only that it faces left: the
+    mounting states learn the rest."""
+    from vehicle_estimation.validation import commonroad
+
+    cases = [c for c in _fastsim_cases(root, quick=quick, folder_name="fastsim_turned_imu",
+                                       imu_rpy_deg=TURNED_IMU_RPY_DEG) if c.name in METHOD_FASTSIM_DRIVES]
+    manoeuvres = ["dlc"] if quick else list(commonroad.MANOEUVRES)
+    folder = root / "commonroad_turned_imu"
+    paths = [folder / f"commonroad_{m}" for m in manoeuvres]
+    if not all(p.exists() for p in paths):
+        paths = commonroad.generate(folder, manoeuvres=manoeuvres, duration=14.0 if quick else None,
+                                    imu_rpy_deg=TURNED_IMU_RPY_DEG)
+    vehicle = folder / f"{commonroad.VEHICLE_NAME}.yaml"
+    cases += [Case(p.name, COMMONROAD_SOURCE, p, vehicle, ("lateral",)) for p in paths]
     layer = root / "layers" / "imu_facing_left.yaml"
     layer.parent.mkdir(parents=True, exist_ok=True)
     nominal = ", ".join(repr(math.radians(a)) for a in TURNED_IMU_NOMINAL_DEG)
     layer.write_text(f"/**:\n  ros__parameters:\n    vehicle.imu_mounting_rpy: [{nominal}]\n", encoding="utf-8")
     turned = ", the IMU turned: roll, pitch, yaw " + ", ".join(f"{a:g}" for a in TURNED_IMU_RPY_DEG)
     return [replace(c, name=f"{c.name}_imu_facing_left", source=c.source + turned, params=("estimation", str(layer)))
-            for c in cases if c.name in METHOD_FASTSIM_DRIVES]
+            for c in cases]
 
 
 def _truck_cases(root: Path, *, quick: bool) -> list[Case]:
