@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -150,6 +151,52 @@ def test_an_imu_on_its_side_is_named_unless_the_vehicle_file_says_so(bags, tmp_p
     assert "reads gravity" not in text
     assert "IMU mounting: imu_link at roll, pitch, yaw 90.0, 0.0, 0.0 deg in base_link" in text
     assert "reads gravity" not in _node_text(summarize(bags["full"], _files(), {}), "fusion")
+
+
+@pytest.fixture(scope="module")
+def minute_drive(tmp_path_factory) -> Path:
+    """The 60-s drive: enough accelerating and turning above walking pace for the yaw check."""
+    return Path(write_bag(simulate(scenario_by_name("short")), tmp_path_factory.mktemp("yaw") / "short"))
+
+
+@pytest.mark.parametrize("yaw_deg", [90.0, 180.0, -25.0])
+def test_an_imu_turned_about_z_is_named_from_the_cars_accelerations(minute_drive, tmp_path, yaw_deg):
+    """Gravity cannot show a yaw (an IMU facing backwards reads it as a level one does); the car's
+    accelerations from vehicle/speed, (dv/dt, v r), can: inspect names the IMU's yaw unless the
+    vehicle file gives it."""
+    from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
+
+    C = rotmat_from_euler(0.0, 0.0, math.radians(yaw_deg))
+    bag = _copy(minute_drive, tmp_path / "turned", lambda i, topic, typ, raw: (
+        topic, _turned_imu(raw, C) if topic == topics.IMU else raw))
+    text = _node_text(summarize(bag, _files(), {}), "fusion")
+    found = re.search(r"horizontal axes are (\d+) deg about base_link z .* IMU yaw of about (-?\d+) deg", text)
+    assert found, text
+    assert abs(int(found.group(1)) - abs(yaw_deg)) <= 5
+    assert abs((int(found.group(2)) - yaw_deg + 180) % 360 - 180) <= 5
+    assert "reads gravity" not in text
+    layer = tmp_path / "turned.yaml"
+    layer.write_text(f"/**:\n  ros__parameters:\n    vehicle.imu_mounting_rpy: [0.0, 0.0, {math.radians(yaw_deg)!r}]\n")
+    assert "horizontal axes" not in _node_text(summarize(bag, _files(layer), {}), "fusion")
+    assert "horizontal axes" not in _node_text(summarize(minute_drive, _files(), {}), "fusion")
+
+
+def test_the_yaw_check_says_nothing_where_the_drive_cannot_show_it():
+    """Too little acceleration above 3 m/s, or an IMU force the car's acceleration does not
+    explain (vibration): None, not a guess."""
+    t = np.arange(0.0, 60.0, 0.01)
+    v = 10.0 + 0.5 * np.sin(0.3 * t)                       # 0.15 m/s^2 of acceleration: too little
+    speed = np.column_stack([t, v])
+    imu = np.column_stack([t, np.gradient(v, t), np.zeros_like(t), np.full_like(t, 9.81),
+                           np.zeros((t.size, 3))])
+    assert node_plan.imu_yaw_offset(imu, speed, (0.0, 0.0, 0.0)) is None
+    v = 10.0 + 5.0 * np.sin(0.3 * t)                       # 1.5 m/s^2: enough
+    speed, imu[:, 1] = np.column_stack([t, v]), np.gradient(v, t)
+    assert node_plan.imu_yaw_offset(imu, speed, (0.0, 0.0, 0.0)) == pytest.approx(0.0, abs=0.01)
+    shaken = imu.copy()
+    shaken[:, 1:3] += np.random.default_rng(0).normal(0.0, 4.0, (t.size, 2))
+    assert node_plan.imu_yaw_offset(shaken, speed, (0.0, 0.0, 0.0)) is None
+    assert node_plan.imu_yaw_offset(imu[:10], speed, (0.0, 0.0, 0.0)) is None
 
 
 def test_out_of_order_and_duplicated_stamps(bags):

@@ -2,8 +2,9 @@
 
 Header stamps are read for every message (for rosbag2's CDR straight from the bytes: int32
 sec and uint32 nanosec right after the 4-byte encapsulation header, then the frame_id); the
-content checks deserialize at most :data:`MAX_SAMPLES` messages per topic (every k-th), so an
-hour of 200 Hz IMU costs a pass over the file and no more. :func:`read_bag` collects,
+content checks deserialize at most :data:`MAX_SAMPLES` messages per topic (every k-th, and the
+first IMU and speed messages for the alignment check), so an hour of 200 Hz IMU costs a pass
+over the file and no more. :func:`read_bag` collects,
 :func:`topic_summary` turns one topic's statistics into plain data for ``inspect``.
 """
 
@@ -74,6 +75,9 @@ class TopicStats:
         self.no_fix = 0
         # start-of-bag samples for the alignment check
         self.start_values: list[Any] = []
+        # imu/data and vehicle/speed: (stamp, values...) of every sample_every-th message over
+        # the whole bag, for the check of the IMU's yaw against the car's accelerations
+        self.samples: list[tuple[float, ...]] = []
 
     @property
     def type_ok(self) -> bool:
@@ -110,12 +114,18 @@ def _sample_content(stats: TopicStats, msg: Any) -> None:
         stats.no_fix += int(not ok)
 
 
-def _start_value(stats: TopicStats, msg: Any) -> None:
+def _motion_sample(stats: TopicStats, msg: Any, stamp: float, index: int) -> None:
+    """imu/data's specific force and rate, vehicle/speed's speed: at the start (the alignment
+    check) and every ``sample_every``-th message (the yaw check)."""
     if stats.contract == topics.IMU:
         a, w = msg.linear_acceleration, msg.angular_velocity
-        stats.start_values.append((a.x, a.y, a.z, w.x, w.y, w.z))
-    elif stats.contract == topics.SPEED:
-        stats.start_values.append(msg.twist.twist.linear.x)
+        values: tuple[float, ...] = (a.x, a.y, a.z, w.x, w.y, w.z)
+    else:
+        values = (msg.twist.twist.linear.x,)
+    if index < (START_IMU_SAMPLES if stats.contract == topics.IMU else START_SPEED_SAMPLES):
+        stats.start_values.append(values if stats.contract == topics.IMU else values[0])
+    if index % stats.sample_every == 0:
+        stats.samples.append((stamp, *values))
 
 
 def read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
@@ -161,8 +171,7 @@ def read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
             stats.first_log = min(stats.first_log, t_log)
             stats.last_log = max(stats.last_log, t_log)
             content = contract_ok[conn.id] and (
-                (stats.contract in (topics.JOINT_STATES, topics.POWERTRAIN, topics.GNSS)
-                 and index % every[stats.contract] == 0)
+                index % every[stats.contract] == 0
                 or (stats.contract == topics.IMU and index < START_IMU_SAMPLES)
                 or (stats.contract == topics.SPEED and index < START_SPEED_SAMPLES))
             msg = None
@@ -180,8 +189,8 @@ def read_bag(bag: Path, remaps: dict[str, str]) -> dict[str, Any]:
             stats.frames[frame] = stats.frames.get(frame, 0) + 1
             if msg is not None and content:
                 if stats.contract in (topics.IMU, topics.SPEED):
-                    _start_value(stats, msg)
-                else:
+                    _motion_sample(stats, msg, stamp, index)
+                elif index % every[stats.contract] == 0:
                     _sample_content(stats, msg)
         storage = "rosbag2" if is2 else "ROS 1 bag"
         if is2:
