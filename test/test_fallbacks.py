@@ -9,6 +9,7 @@ the bias-compensated IMU.
 from __future__ import annotations
 
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -70,7 +71,8 @@ def _read(bag: Path) -> tuple[dict[str, int], dict[str, dict[str, str]], dict[st
             if conn.topic == "/diagnostics":
                 for status in msg.status:
                     values = {kv.key: kv.value for kv in status.values}
-                    diagnostics[status.name.split("/")[-1]] = {"message": status.message, **values}
+                    diagnostics[status.name.split("/")[-1]] = {"message": status.message,
+                                                               "level": str(int(status.level)), **values}
                 continue
             key = wanted[conn.topic]
             if key == "mass":
@@ -161,3 +163,25 @@ def test_without_vehicle_speed_the_fusion_navigates_on_the_wheel_speeds(wheels_o
     moving = odometry[:, 1] > 5.0
     error = odometry[moving, 1] - np.interp(odometry[moving, 0], truth[:, 0], truth[:, 1])
     assert moving.sum() > 100 and math.sqrt(float(np.mean(error ** 2))) < 0.2
+
+
+def test_an_imu_turned_about_z_is_named_in_diagnostics(bare, replayed, tmp_path):
+    """An IMU facing left in a car whose vehicle file says it faces forward reads gravity as a
+    level one does; the fusion's yaw check, on the car's accelerations from vehicle/speed,
+    names it (WARN, with the IMU's yaw) while the well-mounted drive's check agrees."""
+    from test_inspect import _copy, _turned_imu
+    from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
+
+    _, diagnostics, _ = _read(replayed)
+    assert diagnostics["fusion"]["IMU yaw check"].startswith("agrees with vehicle.imu_mounting_rpy")
+    assert diagnostics["fusion"]["level"] != "1" or "IMU" not in diagnostics["fusion"]["message"]
+    C = rotmat_from_euler(0.0, 0.0, math.pi / 2)
+    turned = _copy(bare, tmp_path / "facing_left", lambda i, topic, typ, raw: (
+        topic, _turned_imu(raw, C) if topics.relative(topic) == topics.IMU else raw))
+    _, diagnostics, _ = _read(_replay(turned, tmp_path / "estimates", "--in-process"))
+    fusion = diagnostics["fusion"]
+    assert fusion["level"] == "1", fusion                   # WARN
+    found = re.search(r"horizontal axes are (\d+) deg about base_link z .* its yaw is about (-?\d+) deg",
+                      fusion["message"])
+    assert found and abs(int(found.group(1)) - 90) <= 10 and abs(int(found.group(2)) - 90) <= 10, fusion["message"]
+    assert fusion["IMU yaw check"] in fusion["message"]

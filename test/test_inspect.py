@@ -189,14 +189,17 @@ def test_the_yaw_check_says_nothing_where_the_drive_cannot_show_it():
     speed = np.column_stack([t, v])
     imu = np.column_stack([t, np.gradient(v, t), np.zeros_like(t), np.full_like(t, 9.81),
                            np.zeros((t.size, 3))])
-    assert node_plan.imu_yaw_offset(imu, speed, (0.0, 0.0, 0.0)) is None
+    def offset(imu, speed):
+        return node_plan.imu_yaw_check(imu, speed, (0.0, 0.0, 0.0)).offset
+
+    assert offset(imu, speed) is None
     v = 10.0 + 5.0 * np.sin(0.3 * t)                       # 1.5 m/s^2: enough
     speed, imu[:, 1] = np.column_stack([t, v]), np.gradient(v, t)
-    assert node_plan.imu_yaw_offset(imu, speed, (0.0, 0.0, 0.0)) == pytest.approx(0.0, abs=0.01)
+    assert offset(imu, speed) == pytest.approx(0.0, abs=0.01)
     shaken = imu.copy()
     shaken[:, 1:3] += np.random.default_rng(0).normal(0.0, 4.0, (t.size, 2))
-    assert node_plan.imu_yaw_offset(shaken, speed, (0.0, 0.0, 0.0)) is None
-    assert node_plan.imu_yaw_offset(imu[:10], speed, (0.0, 0.0, 0.0)) is None
+    assert offset(shaken, speed) is None
+    assert offset(imu[:10], speed) is None
 
 
 def test_out_of_order_and_duplicated_stamps(bags):

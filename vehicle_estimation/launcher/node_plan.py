@@ -17,6 +17,7 @@ import yaml
 from vehicle_estimation.contract import topics
 from vehicle_estimation.contract.vehicle import UNDRIVEN_WHEELS, merge_ros_parameters
 from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
+from vehicle_estimation.estimators.fusion.mounting_check import MountingYawCheck
 from vehicle_estimation.estimators.registry import DEFAULT_NO_SPEED_FILTER, NO_SPEED_HOLD_S, STATE_FILTERS
 from vehicle_estimation.estimators.state.core import DEFAULT_CORNERING_ACCEL_STD
 from vehicle_estimation.io.bag_survey import InspectError, TopicStats
@@ -161,62 +162,28 @@ def _mounting_lines(stats: TopicStats | None, fusion: dict[str, Any]) -> list[st
     return lines
 
 
-#: Beyond this angle about base_link z between the car's horizontal acceleration and the IMU's
-#: horizontal specific force turned by the nominal mounting, the nominal yaw is not the IMU's:
-#: the fusion's mounting states refine a few degrees, not this.
-YAW_MISMATCH_DEG = 10.0
-#: The yaw check needs this much of the car's horizontal acceleration (RMS about its mean)
-#: [m/s^2] above walking pace, and the fit to explain this share of the IMU's (coherence).
-MIN_YAW_CHECK_ACCEL = 0.3
-MIN_YAW_CHECK_COHERENCE = 0.8
-YAW_CHECK_BASELINE_S = 2.0
-
-
-def imu_yaw_offset(imu_samples, speed_samples, mounting_rpy) -> float | None:
-    """The angle [rad] about base_link z that takes the car's horizontal acceleration to the
-    IMU's horizontal specific force turned into base_link by ``mounting_rpy``: about 0 for the
-    right yaw, minus the error of the nominal yaw otherwise.
-
-    The car's acceleration is (dv/dt, v r) from ``speed_samples`` (stamp, v; dv/dt over
-    :data:`YAW_CHECK_BASELINE_S`) and the gyro's rate about base_link z; ``imu_samples`` are (stamp, f_x, f_y, f_z, w_x, w_y, w_z). Means are
-    taken out (the bias, the mean grade), and what is left is a 2-D Procrustes fit. None where
-    the drive cannot tell: too few samples above 3 m/s, too little acceleration, or a fit that
-    explains too little of the IMU's force (vibration)."""
+def imu_yaw_check(imu_samples, speed_samples, mounting_rpy) -> MountingYawCheck:
+    """The yaw check (:class:`~vehicle_estimation.estimators.fusion.mounting_check.MountingYawCheck`)
+    on a bag's samples: ``imu_samples`` (stamp, f_x, f_y, f_z, w_x, w_y, w_z) in imu_link and
+    ``speed_samples`` (stamp, v), each every k-th message of the bag."""
+    check = MountingYawCheck(mounting_rpy)
     imu = np.asarray(imu_samples, dtype=float)
     speed = np.asarray(speed_samples, dtype=float)
-    if imu.ndim != 2 or imu.shape[1] != 7 or speed.ndim != 2 or speed.shape[0] < 10:
-        return None
+    if imu.ndim != 2 or imu.shape[1] != 7 or speed.ndim != 2 or speed.shape[0] < 2:
+        return check
     t_s, v = speed[np.argsort(speed[:, 0], kind="stable")].T
     new = np.concatenate([[True], np.diff(t_s) > 0.0])
     t_s, v = t_s[new], v[new]
-    if t_s.size < 10 or not (np.isfinite(imu).all() and np.isfinite(v).all()):
-        return None
+    half = 0.5 * check.baseline_s
     t = imu[:, 0]
-    inside = (t >= t_s[0]) & (t <= t_s[-1])
-    R = rotmat_from_euler(*(float(a) for a in mounting_rpy))
-    f = imu[inside, 1:4] @ R.T
-    yaw_rate = imu[inside, 4:7] @ R.T[:, 2]
-    vi = np.interp(t[inside], t_s, v)
-    moving = vi > 3.0
-    if np.count_nonzero(moving) < 50:
-        return None
-    # dv/dt over a 2-s baseline: CAN speeds come in steps (1 km/h), and a step between two
-    # samples 10 ms apart reads as 8 m/s^2
-    ti = t[inside]
-    dvdt = (np.interp(ti + YAW_CHECK_BASELINE_S / 2, t_s, v) - np.interp(ti - YAW_CHECK_BASELINE_S / 2, t_s, v)) \
-        / YAW_CHECK_BASELINE_S
-    a = np.column_stack([dvdt, vi * yaw_rate])[moving]
-    f = f[moving, :2]
-    a -= a.mean(axis=0)
-    f -= f.mean(axis=0)
-    power_a, power_f = float(np.sum(a * a)), float(np.sum(f * f))
-    if power_a < MIN_YAW_CHECK_ACCEL ** 2 * a.shape[0] or power_f <= 0.0:
-        return None
-    dot = float(np.sum(a[:, 0] * f[:, 0] + a[:, 1] * f[:, 1]))
-    cross = float(np.sum(a[:, 0] * f[:, 1] - a[:, 1] * f[:, 0]))
-    if math.hypot(dot, cross) < MIN_YAW_CHECK_COHERENCE * math.sqrt(power_a * power_f):
-        return None
-    return math.atan2(cross, dot)
+    use = (t - half >= t_s[0]) & (t + half <= t_s[-1])
+    t = t[use]
+    vi = np.interp(t, t_s, v)
+    f, yaw_rate = check.to_base(imu[use, 1:4], imu[use, 4:7])
+    dvdt = (np.interp(t + half, t_s, v) - np.interp(t - half, t_s, v)) / check.baseline_s
+    moving = vi >= check.min_speed
+    check.add(np.column_stack([dvdt, vi * yaw_rate])[moving], f[moving])
+    return check
 
 
 def _mounting_yaw_lines(imu: TopicStats | None, speed: TopicStats | None, fusion: dict[str, Any]) -> list[str]:
@@ -225,14 +192,14 @@ def _mounting_yaw_lines(imu: TopicStats | None, speed: TopicStats | None, fusion
     if imu is None or speed is None:
         return []
     rpy = [float(a) for a in fusion.get("vehicle.imu_mounting_rpy", (0.0, 0.0, 0.0))]
-    offset = imu_yaw_offset(imu.samples, speed.samples, rpy)
-    if offset is None or abs(math.degrees(offset)) <= YAW_MISMATCH_DEG:
+    check = imu_yaw_check(imu.samples, speed.samples, rpy)
+    offset = check.offset
+    if offset is None or not check.mismatched:
         return []
-    yaw = (math.degrees(rpy[2] - offset) + 180.0) % 360.0 - 180.0
     return [f"imu/data's horizontal axes are {abs(math.degrees(offset)):.0f} deg about base_link z from "
             f"where vehicle.imu_mounting_rpy puts them (vehicle/speed's accelerations and turns "
-            f"show an IMU yaw of about {yaw:.0f} deg): give the IMU's mounting in the vehicle file, "
-            "or every node reads the car's forward acceleration on the wrong axis"]
+            f"show an IMU yaw of about {check.implied_yaw_deg():.0f} deg): give the IMU's mounting in the "
+            "vehicle file, or every node reads the car's forward acceleration on the wrong axis"]
 
 
 def _speedless_stretches(imu: TopicStats | None, stamps: np.ndarray,

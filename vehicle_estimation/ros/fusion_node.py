@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, JointState, NavSatFix, NavSatStatus
@@ -31,6 +32,7 @@ from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
 from vehicle_estimation.estimators.common.rotations import rotmat_to_quat
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF
+from vehicle_estimation.estimators.fusion.mounting_check import MountingYawCheck
 from vehicle_estimation.ros.conversions import MAX_SPEED, MalformedMessage, chassis_reading
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
@@ -65,6 +67,8 @@ class FusionNode(EstimatorNode):
         self.odom_frame = self.declare_str("odom_frame", topics.ODOM_FRAME, "ENU world frame id")
 
         self.ekf = FusionEKF(config)
+        # The mounting states refine a few degrees; a nominal yaw tens of degrees off is named.
+        self.yaw_check = MountingYawCheck(self.vehicle.imu_mounting_rpy)
         self.origin: LocalTangentPlane | None = None
         self._last_odom_t = -math.inf
         self._last_angular_rate = np.zeros(3)
@@ -108,6 +112,7 @@ class FusionNode(EstimatorNode):
         f, w = imu
         self._imu_t = t
         self._last_angular_rate = w
+        self.yaw_check.add_imu(t, f, w)
         if not self.ekf.process_imu(t, f, w):
             self.reject("imu:out_of_order")
             return
@@ -159,6 +164,7 @@ class FusionNode(EstimatorNode):
             return
         v, var = reading
         self._can_speed_t = t
+        self.yaw_check.add_speed(t, v)
         if not self.ekf.update_speed(t, v, None if math.isnan(var) else var):
             self.reject("speed:rejected_by_filter")
 
@@ -178,6 +184,7 @@ class FusionNode(EstimatorNode):
             self.reject("joint_states:implausible")
             return
         self._wheel_speed_t = t
+        self.yaw_check.add_speed(t, v)
         variance = (self.wheel_speed_std * v) ** 2 + WHEEL_SPEED_FLOOR_STD ** 2
         if not self.ekf.update_speed(t, v, variance):
             self.reject("joint_states:speed_rejected_by_filter")
@@ -226,6 +233,7 @@ class FusionNode(EstimatorNode):
     # -------------------------------------------------------------- bookkeeping
     def reset_estimators(self) -> None:
         self.ekf.reset()
+        self.yaw_check.reset()
         self._last_odom_t = -math.inf
         self._last_bias_t = -math.inf
         self._last_imu_pub_t = -math.inf
@@ -250,7 +258,7 @@ class FusionNode(EstimatorNode):
         values = {"filter status": ekf.status, "initialized": str(ekf.initialized),
                   "heading source": "GNSS motion" if ekf.initialized else "free (no GNSS heading yet)",
                   "position source": "GNSS" if self.origin is not None else "dead reckoning (no GNSS fix)",
-                  "speed source": self.speed_source}
+                  "speed source": self.speed_source, "IMU yaw check": self.yaw_check.status()}
         if ekf.navigating:
             values.update({
                 "road grade [deg]": f"{math.degrees(ekf.road_grade):.3f}",
@@ -276,6 +284,14 @@ class FusionNode(EstimatorNode):
         for k, v in getattr(ekf, "events", {}).items():     # imu_gap, align_restart, ...
             values[f"filter event {k}"] = str(v)
         return values
+
+
+    def status_summary(self) -> tuple[int, str]:
+        level, message = super().status_summary()
+        if self.yaw_check.mismatched:       # every node reads the IMU in the wrong axes
+            return DiagnosticStatus.WARN, self.yaw_check.status() + ("" if level == DiagnosticStatus.OK
+                                                                     else "; " + message)
+        return level, message
 
 
 def main(args: list[str] | None = None) -> int:
