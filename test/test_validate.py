@@ -222,7 +222,7 @@ def test_turned_imu_cases_give_the_replay_only_the_nominal_mounting(tmp_path, mo
     monkeypatch.setattr(commonroad, "generate", lambda folder, **kw: calls.append(kw) or [
         folder / f"commonroad_{m}" for m in kw["manoeuvres"]])
     cases = validate._turned_imu_cases(tmp_path, quick=True)
-    assert calls == [{"duration": 120.0, "imu_rpy_deg": validate.TURNED_IMU_RPY_DEG},
+    assert calls == [{"duration": 120.0, "imu_rpy_deg": validate.TURNED_IMU_RPY_DEG, "seed": 0},
                      {"manoeuvres": ["dlc"], "duration": 14.0, "imu_rpy_deg": validate.TURNED_IMU_RPY_DEG}]
     assert [c.name for c in cases] == ["fastsim_hills_imu_facing_left", "fastsim_hills_no_gnss_imu_facing_left",
                                        "commonroad_dlc_imu_facing_left"]
@@ -337,3 +337,43 @@ def test_a_method_case_runs_through_the_nodes_and_scores_its_own_node(tmp_path, 
         filters = [status["filter"] for status in diagnostic_statuses(
             tmp_path / "out" / "runs" / case / "estimates", "vehicle_state") if "filter" in status]
         assert filters[0] == case.rsplit("_", 1)[-1]
+
+
+def test_seed_cases_are_the_car_drive_with_other_draws(tmp_path, monkeypatch):
+    from vehicle_estimation.validation import fastsim_drive, validate
+
+    calls = []
+    monkeypatch.setattr(fastsim_drive, "generate", lambda folder, **kw: calls.append((folder.name, kw)) or [
+        folder / name for name in fastsim_drive.VARIANTS])
+    cases = validate._seed_cases(tmp_path, quick=False)
+    assert [c for _, c in calls] == [{"duration": None, "imu_rpy_deg": (0.0, 0.0, 0.0), "seed": s}
+                                     for s in validate.ENSEMBLE_SEEDS]
+    assert len({folder for folder, _ in calls}) == len(validate.ENSEMBLE_SEEDS)      # one folder each
+    assert [(c.name, c.ensemble) for c in cases[:2]] == [("fastsim_hills_seed1", "fastsim_hills"),
+                                                         ("fastsim_hills_no_gnss_seed1", "fastsim_hills_no_gnss")]
+    assert len(cases) == 2 * len(validate.ENSEMBLE_SEEDS)
+
+
+def test_ensemble_rows_sum_up_the_draws_of_one_drive():
+    """Each drive's NEES is one draw of its lasting error: the ensemble's mean NEES and the RMS
+    of the drives' errors are what say whether sigma is the error's size."""
+    from vehicle_estimation.evaluation.validation_tables import ensemble_rows, format_table
+
+    def consistency(case, nees, within, ensemble="car"):
+        return {"case": case, "independent": True, "quantity": "mass", "within_1sigma": within,
+                "within_2sigma": within, "within_3sigma": 1.0, "nees": nees, "ensemble": ensemble}
+
+    def row(case, mae):
+        return {"case": case, "independent": True, "quantity": "mass (last half)", "unit": "%",
+                "estimator": "mass (rls)", "baseline": "batch LS", "ours": {"mae": mae, "rmse": mae},
+                "base": {"mae": 0.1, "rmse": 0.1}, "ratio": mae / 0.1}
+
+    result = {"rows": [row("a", 0.1), row("b", 0.2), row("c", 0.3), row("other", 5.0)],
+              "consistency": [consistency("a", 0.5, 1.0), consistency("b", 1.0, 0.9), consistency("c", 1.5, 0.8),
+                              {**consistency("other", 9.0, 0.1), "ensemble": ""}],
+              "warmup_s": 5.0, "methods": {"mass": "rls"}}
+    (car,) = ensemble_rows(result)
+    assert car["drives"] == 3 and car["nees"] == pytest.approx(1.0) and car["nees_range"] == (0.5, 1.5)
+    assert car["mae_rms"] == pytest.approx(math.sqrt((0.01 + 0.04 + 0.09) / 3)) and car["mae_max"] == 0.3
+    assert car["within_2sigma"] == pytest.approx(0.9)
+    assert "| car | mass | 3 | 0.216 (0.300) % | 90 % | 1.00 (0.50–1.50) |" in format_table(result)

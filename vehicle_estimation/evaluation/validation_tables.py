@@ -34,6 +34,54 @@ def format_table(result: dict) -> str:
         lines += _rows_table(result["motion"])
     if result.get("consistency"):
         lines += ["", format_consistency(result["consistency"])]
+    ensembles = ensemble_rows(result)
+    if ensembles:
+        lines += ["", format_ensembles(ensembles)]
+    return "\n".join(lines)
+
+
+def ensemble_rows(result: dict) -> list[dict]:
+    """Per drive that ran with several noise draws (consistency rows with an ``ensemble``) and
+    estimate: the drives' errors (each drive's MAE, from the rows of the same estimate) and
+    their consistency taken together. Within one drive a lasting error (the bias the fusion
+    has not learnt) is one draw, so a single drive's NEES says little; over the draws the
+    mean NEES should be about 1."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in result.get("consistency", []):
+        if r.get("ensemble"):
+            groups.setdefault((r["ensemble"], r["quantity"]), []).append(r)
+    out = []
+    for (ensemble, quantity), members in groups.items():
+        cases = {r["case"] for r in members}
+        errors = [r for r in result["rows"] if r["case"] in cases and r["quantity"].split(" (")[0] == quantity]
+        mae = [r["ours"]["mae"] for r in errors if math.isfinite(r["ours"]["mae"])]
+        nees = [r["nees"] for r in members if r.get("nees") is not None and math.isfinite(r["nees"])]
+        within = [r["within_2sigma"] for r in members if r.get("within_2sigma") is not None]
+        out.append({"ensemble": ensemble, "quantity": quantity, "drives": len(cases),
+                    "unit": errors[0]["unit"] if errors else "",
+                    "mae_rms": math.sqrt(sum(x * x for x in mae) / len(mae)) if mae else math.nan,
+                    "mae_max": max(mae) if mae else math.nan,
+                    "within_2sigma": sum(within) / len(within) if within else math.nan,
+                    "nees": sum(nees) / len(nees) if nees else math.nan,
+                    "nees_range": (min(nees), max(nees)) if nees else (math.nan, math.nan)})
+    return out
+
+
+def format_ensembles(rows: list[dict]) -> str:
+    """The table of :func:`ensemble_rows`."""
+    from vehicle_estimation.evaluation.report import format_share as pct
+
+    lines = ["Over the noise draws of one drive (a lasting error is one draw per drive):", "",
+             "| drive | estimate | drives | MAE over the drives, RMS (max) | within 2σ | NEES, mean (range) |",
+             "| --- | --- | ---: | ---: | ---: | ---: |"]
+    def num(x, spec):
+        return format(x, spec) if x is not None and math.isfinite(x) else "n/a"
+
+    for r in rows:
+        low, high = r["nees_range"]
+        mae = f"{num(r['mae_rms'], '.3f')} ({num(r['mae_max'], '.3f')}) {r['unit']}" if r["unit"] else "n/a"
+        lines.append(f"| {r['ensemble']} | {r['quantity']} | {r['drives']} | {mae} | {pct(r['within_2sigma'])} | "
+                     f"{num(r['nees'], '.2f')} ({num(low, '.2f')}–{num(high, '.2f')}) |")
     return "\n".join(lines)
 
 

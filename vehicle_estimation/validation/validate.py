@@ -26,6 +26,9 @@ Cases (``--cases``; default: all that can be made here):
 * ``..._imu_facing_left`` (``turned_imu``): the FASTSim car with and without GNSS and the three
   clean CommonRoad manoeuvres, their IMU turned by :data:`TURNED_IMU_RPY_DEG` and the replay
   given only the nominal mounting :data:`TURNED_IMU_NOMINAL_DEG` (the fusion learns the rest).
+* ``..._seed<n>`` (``seeds``): the FASTSim car with and without GNSS, its sensors drawn with
+  other seeds (:data:`ENSEMBLE_SEEDS`); ``validation.md`` sums up each drive's consistency
+  over the seeds, for a lasting error is one draw per drive.
 * ``sim_hills``: *our own* simulator's hilly drive, labelled as such: the filters share its
   model, so it is a reference row, not evidence.
 * ``methods``: every method a node offers besides the shipped one (the other state filters on
@@ -93,6 +96,9 @@ class Case:
     #: A method case's node (the one whose method the last layer selects): only its rows are
     #: scored; "": every node's.
     node: str = ""
+    #: Cases that are one drive with other noise draws share it: their consistency is also
+    #: summed up over the drives (a lasting error is one draw per drive).
+    ensemble: str = ""
 
 
 # ------------------------------------------------------------------------------------ cases
@@ -132,9 +138,9 @@ def _without_gnss_and_wheels(bag: Path) -> Path:
 
 
 def _fastsim_cases(root: Path, *, quick: bool, folder_name: str = "fastsim",
-                  imu_rpy_deg=(0.0, 0.0, 0.0)) -> list[Case]:
+                  imu_rpy_deg=(0.0, 0.0, 0.0), seed: int = 0) -> list[Case]:
     """The FASTSim car drive's variants in ``root/folder_name``, its IMU at ``imu_rpy_deg`` in
-    base_link (:func:`.fastsim_drive.generate`); [] without FASTSim."""
+    base_link, its sensors drawn with ``seed`` (:func:`.fastsim_drive.generate`); [] without FASTSim."""
     try:
         from vehicle_estimation.validation import fastsim_drive
     except ImportError:
@@ -143,7 +149,8 @@ def _fastsim_cases(root: Path, *, quick: bool, folder_name: str = "fastsim",
         folder = root / folder_name
         paths = [folder / name for name in fastsim_drive.VARIANTS]
         if not all(p.exists() for p in paths):      # else made by an earlier group of this run
-            paths = fastsim_drive.generate(folder, duration=120.0 if quick else None, imu_rpy_deg=imu_rpy_deg)
+            paths = fastsim_drive.generate(folder, duration=120.0 if quick else None, imu_rpy_deg=imu_rpy_deg,
+                                           seed=seed)
     except ImportError as exc:          # the module is there, the library is not
         print(f"[validate] no FASTSim cases: {exc}")
         return []
@@ -180,6 +187,20 @@ def _turned_imu_cases(root: Path, *, quick: bool) -> list[Case]:
     turned = ", the IMU turned: roll, pitch, yaw " + ", ".join(f"{a:g}" for a in TURNED_IMU_RPY_DEG)
     return [replace(c, name=f"{c.name}_imu_facing_left", source=c.source + turned, params=("estimation", str(layer)))
             for c in cases]
+
+
+#: The ``seeds`` group's sensor draws of the FASTSim car drive (the ``fastsim`` group's is 0).
+ENSEMBLE_SEEDS = tuple(range(1, 7))
+
+
+def _seed_cases(root: Path, *, quick: bool) -> list[Case]:
+    """The FASTSim car drive with and without GNSS, its noise and IMU biases drawn with each of
+    :data:`ENSEMBLE_SEEDS` (``--quick``: the first): one drive's mass error is one draw of the
+    bias the fusion has not learnt, and only many drives show whether sigma is its size."""
+    return [replace(c, name=f"{c.name}_seed{seed}", ensemble=c.name)
+            for seed in ENSEMBLE_SEEDS[:1 if quick else None]
+            for c in _fastsim_cases(root, quick=quick, folder_name=f"fastsim_seed{seed}", seed=seed)
+            if c.name in METHOD_FASTSIM_DRIVES]
 
 
 def _truck_cases(root: Path, *, quick: bool) -> list[Case]:
@@ -251,7 +272,7 @@ def _method_cases(root: Path, *, quick: bool) -> list[Case]:
 
 CASE_BUILDERS: dict[str, Callable[..., list[Case]]] = {
     "commonroad": _commonroad_cases, "fastsim": _fastsim_cases, "turned_imu": _turned_imu_cases,
-    "truck": _truck_cases, "sim": _sim_cases, "methods": _method_cases}
+    "truck": _truck_cases, "sim": _sim_cases, "methods": _method_cases, "seeds": _seed_cases}
 
 
 # ------------------------------------------------------------------------------------ scoring
@@ -501,7 +522,8 @@ def run(out: Path, node_group: Callable[[list[Path], Any, Path], Any], *, cases:
             consistency += [r for r in consistency_rows(case, est) if r["quantity"] in NODE_ESTIMATES[case.node]]
         else:
             rows += case_rows
-            consistency += consistency_rows(case, est)
+            consistency += [{**r, "ensemble": case.ensemble} if case.ensemble else r
+                            for r in consistency_rows(case, est)]
             motion += motion_rows(case, est, inputs, vehicle, case_methods["vehicle_state"])
         _plot(case, series, out / f"{case.name}.png")
         replays.append({"case": case.name, "source": case.source, "bag": str(case.bag),
