@@ -202,3 +202,19 @@ def test_consistency_group_checks_each_published_variance():
     assert c["vx"]["within_1sigma"] == pytest.approx(0.0)
     text = "\n".join(report.format_consistency({k: v for k, v in c.items() if isinstance(v, dict)}))
     assert "slope" in text and "NEES" in text
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 90.0, 30.0])
+def test_the_pitch_variance_is_about_the_heading_left(yaw_deg):
+    """The odometry's rotation covariance is about the fixed ENU axes: a car heading north
+    pitches about ENU x, not y."""
+    from vehicle_estimation.evaluation.report import _extract
+
+    yaw = math.radians(yaw_deg)
+    cov = np.zeros(36)
+    cov[21], cov[28], cov[35] = 1e-4, 9e-4, 4e-4            # about ENU x, y, z
+    msg = _odom(0, 0.0, 0.0, 10.0, 0.0)
+    msg.pose.pose.orientation = Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    msg.pose.covariance = cov
+    values = _extract("nav_msgs/msg/Odometry", msg)
+    assert values["var_pitch"] == pytest.approx(math.sin(yaw) ** 2 * 1e-4 + math.cos(yaw) ** 2 * 9e-4)

@@ -66,9 +66,19 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
         return {"x": pos.x, "y": pos.y, "vx": tw.linear.x, "vy": tw.linear.y,
                 "speed": math.hypot(tw.linear.x, tw.linear.y),
                 "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw),
-                # REP-103 6x6 row-major: twist (vx, ...) and pose (..., roll, pitch, yaw)
-                "var_vx": float(msg.twist.covariance[0]), "var_pitch": float(msg.pose.covariance[28])}
+                # REP-103 6x6 row-major: twist (vx, ...) and pose (x, y, z, then rotations about
+                # the fixed axes X, Y, Z); a small pitch error is the rotation about the
+                # heading's left, (-sin yaw, cos yaw, 0) (ZYX Euler angles, near level)
+                "var_vx": float(msg.twist.covariance[0]), "var_pitch": _pitch_variance(msg.pose.covariance, yaw)}
     return None
+
+
+def _pitch_variance(pose_covariance, yaw: float) -> float:
+    """The variance of the pitch from an Odometry pose covariance whose rotation block is about
+    the fixed axes (REP-103; about ENU for ``estimation/odometry``)."""
+    rotation = np.asarray(pose_covariance, dtype=float).reshape(6, 6)[3:, 3:]
+    left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
+    return float(left @ rotation @ left)
 
 
 def _match_topic(available: Sequence[str], relative: str) -> str | None:
