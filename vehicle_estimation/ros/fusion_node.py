@@ -219,7 +219,7 @@ class FusionNode(EstimatorNode):
             return
         pose_cov = np.zeros((6, 6))
         pose_cov[:3, :3] = ekf.position_covariance
-        pose_cov[3:, 3:] = ekf.attitude_covariance
+        pose_cov[3:, 3:] = ekf.pose_attitude_covariance
         _, wc = ekf.compensated_imu(np.zeros(3), self._last_angular_rate)
         twist_cov = np.zeros((6, 6))
         twist_cov[:3, :3] = ekf.velocity_body_covariance

@@ -186,6 +186,19 @@ class FusionOutputs:
         return J @ self._P @ J.T
 
     @property
+    def pose_attitude_covariance(self) -> np.ndarray:
+        """:attr:`attitude_covariance` of the attitude as ``estimation/odometry`` publishes it:
+        until GNSS has observed the accelerometer bias, its prior along base_link x enters as a
+        pitch (a bias b along x reads as a pitch of b / g), as in :attr:`road_grade_variance`.
+        The roll keeps P's: the vehicle-state node removes gravity from the bias-compensated
+        lateral force with it, and there the roll's and the lateral bias's errors cancel (P knows
+        their sum); ``estimation/imu``, whose orientation goes with its compensated specific
+        force, keeps :attr:`attitude_covariance` whole."""
+        left = self.rotation_matrix[:, 1]               # base_link y in ENU: the pitch axis
+        tilt = self._unaided_bias_variance / self.config.gravity ** 2
+        return self.attitude_covariance + tilt * np.outer(left, left)
+
+    @property
     def _unaided_bias_variance(self) -> float:
         return 0.0 if self.accel_bias_observed else self.config.unaided_accel_bias_sigma ** 2
 
