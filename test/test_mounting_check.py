@@ -68,3 +68,11 @@ def test_no_verdict_without_enough_acceleration_or_samples_and_reset_forgets():
     assert calm.offset is None and "no verdict" in calm.status()
     check.reset()
     assert check.samples == 0 and check.offset is None
+
+
+def test_imu_samples_without_a_speed_do_not_pile_up():
+    check = MountingYawCheck()
+    for k in range(100_000):                                # 10 000 s of IMU, no speed at all
+        check.add_imu(0.1 * k, np.array([0.0, 0.0, G]), np.zeros(3))
+    assert len(check._pending) <= (check.baseline_s + 10.0) / check.sample_period_s + 1
+    assert check.offset is None

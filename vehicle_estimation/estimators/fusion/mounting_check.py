@@ -25,6 +25,9 @@ from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 
 __all__ = ["MountingYawCheck"]
 
+#: IMU samples wait at most this long beyond the centred span for a speed [s].
+MAX_SPEED_LAG_S = 10.0
+
 
 class MountingYawCheck:
     """The angle about ``base_link`` z from the car's horizontal acceleration to the IMU's.
@@ -69,7 +72,9 @@ class MountingYawCheck:
         self._sum_f = np.zeros(2)
         self._sum_aa = self._sum_ff = self._sum_dot = self._sum_cross = 0.0
         self._speeds: collections.deque = collections.deque()
-        self._pending: collections.deque = collections.deque()
+        # IMU samples waiting for the speed after them; bounded, for a speed that never comes
+        self._pending: collections.deque = collections.deque(
+            maxlen=math.ceil((self.baseline_s + MAX_SPEED_LAG_S) / self.sample_period_s))
         self._last_imu_t = -math.inf
 
     # ------------------------------------------------------------------ batch
