@@ -52,7 +52,6 @@ CLI: ``python -m vehicle_estimation.validation.commonroad --out DIR [--vibration
 from __future__ import annotations
 
 import argparse
-import math
 import types
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -62,7 +61,6 @@ import numpy as np
 
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
-from vehicle_estimation.estimators.common.rotations import rotmat_from_euler
 from vehicle_estimation.sim import bag as simbag
 from vehicle_estimation.sim.noise import band_limited_noise
 from vehicle_estimation.validation import road_drive as rd
@@ -339,16 +337,9 @@ def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, 
     accel = tru["accel"].copy()
     if vibration_std > 0.0:
         accel += band_limited_noise(rng, n, fs, vibration_std)
-    gyro = np.column_stack([tru["wx"], tru["wy"], tru["wz"]])
-    a_bias = ACCEL_BIAS * rng.choice([-1.0, 1.0], 3)
-    g_bias = GYRO_BIAS * rng.choice([-1.0, 1.0], 3)
-    # rows are vectors: v_imu = C^T v_base is v_base @ C, C imu_link -> base_link
-    C = rotmat_from_euler(*(math.radians(float(a)) for a in imu_rpy_deg))
-    accel = accel[i] @ C + a_bias + ACCEL_NOISE * rng.standard_normal((i.size, 3))
-    gyro = gyro[i] @ C + g_bias + GYRO_NOISE * rng.standard_normal((i.size, 3))
-    a_var = ACCEL_NOISE ** 2 + vibration_std ** 2
-    imu = {"t": t[i], "accel": accel, "gyro": gyro, "gyro_cov": np.full(3, GYRO_NOISE ** 2),
-           "accel_cov": np.full(3, a_var), "bias_accel": a_bias, "bias_gyro": g_bias}
+    imu = rd.imu_samples(rng, {**tru, "accel": accel}, i, accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE,
+                         accel_bias=ACCEL_BIAS, gyro_bias=GYRO_BIAS, mounting_rpy_deg=imu_rpy_deg)
+    imu["accel_cov"] = np.full(3, ACCEL_NOISE ** 2 + vibration_std ** 2)     # the vibration is noise too
 
     # CAN speed and joint states
     j = _every(t, CAN_RATE_HZ)
