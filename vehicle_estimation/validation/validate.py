@@ -102,20 +102,26 @@ class Case:
 
 
 # ------------------------------------------------------------------------------------ cases
-def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
+def _commonroad_bags(folder: Path, *, quick: bool, **generate) -> tuple[list[str], list[Path], Path]:
+    """CommonRoad's manoeuvres (``--quick``: a short lane change) in ``folder``, made with
+    ``generate``'s options (:func:`.commonroad.generate`) unless an earlier group of this run
+    made them: (manoeuvres, bags, vehicle file)."""
     from vehicle_estimation.validation import commonroad
 
     manoeuvres = ["dlc"] if quick else list(commonroad.MANOEUVRES)
-    duration = 14.0 if quick else None
+    paths = [folder / f"commonroad_{m}" for m in manoeuvres]
+    if not all(p.exists() for p in paths):
+        paths = commonroad.generate(folder, **generate, manoeuvres=manoeuvres, duration=14.0 if quick else None)
+    return manoeuvres, paths, folder / f"{commonroad.VEHICLE_NAME}.yaml"
+
+
+def _commonroad_cases(root: Path, *, quick: bool) -> list[Case]:
     cases = []
     for vibration, suffix in ((0.0, ""), (4.0, "_vib4")):
         if quick and vibration:
             continue
-        folder = root / f"commonroad{suffix}"
-        paths = [folder / f"commonroad_{m}" for m in manoeuvres]
-        if not all(p.exists() for p in paths):      # else made by an earlier group of this run
-            paths = commonroad.generate(folder, vibration_std=vibration, manoeuvres=manoeuvres, duration=duration)
-        vehicle = folder / f"{commonroad.VEHICLE_NAME}.yaml"
+        manoeuvres, paths, vehicle = _commonroad_bags(root / f"commonroad{suffix}", quick=quick,
+                                                      vibration_std=vibration)
         for name, bag in zip(manoeuvres, paths):
             cases.append(Case(f"commonroad_{name}{suffix}", COMMONROAD_SOURCE, bag, vehicle, ("lateral",),
                               notes=[f"IMU vibration {vibration:g} m/s^2 (10-60 Hz)"] if vibration else []))
@@ -168,17 +174,9 @@ def _turned_imu_cases(root: Path, *, quick: bool) -> list[Case]:
     """The FASTSim car drive with and without GNSS and CommonRoad's three manoeuvres, their IMU
     facing left and a little off, and the vehicle file saying only that it faces left: the
     mounting states learn the rest."""
-    from vehicle_estimation.validation import commonroad
-
     cases = [c for c in _fastsim_cases(root, quick=quick, folder_name="fastsim_turned_imu",
                                        imu_rpy_deg=TURNED_IMU_RPY_DEG) if c.name in METHOD_FASTSIM_DRIVES]
-    manoeuvres = ["dlc"] if quick else list(commonroad.MANOEUVRES)
-    folder = root / "commonroad_turned_imu"
-    paths = [folder / f"commonroad_{m}" for m in manoeuvres]
-    if not all(p.exists() for p in paths):
-        paths = commonroad.generate(folder, manoeuvres=manoeuvres, duration=14.0 if quick else None,
-                                    imu_rpy_deg=TURNED_IMU_RPY_DEG)
-    vehicle = folder / f"{commonroad.VEHICLE_NAME}.yaml"
+    _, paths, vehicle = _commonroad_bags(root / "commonroad_turned_imu", quick=quick, imu_rpy_deg=TURNED_IMU_RPY_DEG)
     cases += [Case(p.name, COMMONROAD_SOURCE, p, vehicle, ("lateral",)) for p in paths]
     layer = root / "layers" / "imu_facing_left.yaml"
     layer.parent.mkdir(parents=True, exist_ok=True)
