@@ -173,16 +173,7 @@ def imu_yaw_check(imu_samples, speed_samples, mounting_rpy) -> MountingYawCheck:
         return check
     t_s, v = speed[np.argsort(speed[:, 0], kind="stable")].T
     new = np.concatenate([[True], np.diff(t_s) > 0.0])
-    t_s, v = t_s[new], v[new]
-    half = 0.5 * check.baseline_s
-    t = imu[:, 0]
-    use = (t - half >= t_s[0]) & (t + half <= t_s[-1])
-    t = t[use]
-    vi = np.interp(t, t_s, v)
-    f, yaw_rate = check.to_base(imu[use, 1:4], imu[use, 4:7])
-    dvdt = (np.interp(t + half, t_s, v) - np.interp(t - half, t_s, v)) / check.baseline_s
-    moving = vi >= check.min_speed
-    check.add(np.column_stack([dvdt, vi * yaw_rate])[moving], f[moving])
+    check.add_samples(imu[:, 0], *check.to_base(imu[:, 1:4], imu[:, 4:7]), t_s[new], v[new])
     return check
 
 

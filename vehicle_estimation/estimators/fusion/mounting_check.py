@@ -93,6 +93,24 @@ class MountingYawCheck:
         self._sum_dot += float(np.sum(a[:, 0] * f[:, 0] + a[:, 1] * f[:, 1]))
         self._sum_cross += float(np.sum(a[:, 0] * f[:, 1] - a[:, 1] * f[:, 0]))
 
+    def add_samples(self, t, force, yaw_rate, speed_t, speed) -> None:
+        """IMU samples at stamps ``t`` already in base_link (:meth:`to_base`: the horizontal
+        specific force (n, 2) and the yaw rate (n,)) and the speed samples (increasing stamps
+        ``speed_t``) around them: each IMU sample with speed ``baseline_s / 2`` before and after
+        it, at or above ``min_speed``, enters the fit with (dv/dt over ``baseline_s``, v r)."""
+        t = np.asarray(t, dtype=float)
+        st, sv = np.asarray(speed_t, dtype=float), np.asarray(speed, dtype=float)
+        if t.size == 0 or st.size < 2:
+            return
+        half = 0.5 * self.baseline_s
+        covered = (t - half >= st[0]) & (t + half <= st[-1])
+        t = t[covered]
+        v = np.interp(t, st, sv)
+        dvdt = (np.interp(t + half, st, sv) - np.interp(t - half, st, sv)) / self.baseline_s
+        moving = v >= self.min_speed
+        accel = np.column_stack([dvdt, v * np.asarray(yaw_rate, dtype=float)[covered]])
+        self.add(accel[moving], np.asarray(force, dtype=float).reshape(-1, 2)[covered][moving])
+
     def to_base(self, specific_force: np.ndarray, angular_rate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """imu_link samples (n, 3) turned into base_link by the nominal mounting: the horizontal
         specific force (n, 2) and the yaw rate (n,)."""
@@ -115,16 +133,13 @@ class MountingYawCheck:
         if not math.isfinite(speed) or (self._speeds and t <= self._speeds[-1][0]):
             return
         self._speeds.append((t, float(speed)))
-        half = 0.5 * self.baseline_s
-        while self._pending and self._pending[0][0] + half <= t:
-            ti, fx, fy, r = self._pending.popleft()
-            if ti - half < self._speeds[0][0]:
-                continue                    # no speed before it yet (the start, after a reset)
-            st, sv = (np.array(x) for x in zip(*self._speeds))
-            v = float(np.interp(ti, st, sv))
-            if v >= self.min_speed:
-                dvdt = float(np.interp(ti + half, st, sv) - np.interp(ti - half, st, sv)) / self.baseline_s
-                self.add(np.array([[dvdt, v * r]]), np.array([[fx, fy]]))
+        ready = []
+        while self._pending and self._pending[0][0] + 0.5 * self.baseline_s <= t:
+            ready.append(self._pending.popleft())
+        if ready:
+            ti, fx, fy, r = np.array(ready).T
+            st, sv = np.array(self._speeds).T
+            self.add_samples(ti, np.column_stack([fx, fy]), r, st, sv)
         # keep what the pending samples (at most baseline_s / 2 old) still need
         while len(self._speeds) > 2 and self._speeds[1][0] < t - self.baseline_s - self.sample_period_s:
             self._speeds.popleft()
