@@ -181,19 +181,24 @@ def test_consistency_group_checks_each_published_variance():
     state = {"t": t, "vx": np.full(t.size, 10.5), "vy": np.zeros(t.size), "yaw_rate": np.zeros(t.size),
              "var_vx": np.full(t.size, 0.0625), "var_vy": np.full(t.size, 1.0), "var_yaw_rate": np.zeros(t.size)}
     gt_state = {"t": t, "vx": np.full(t.size, 10.0), "vy": np.zeros(t.size), "yaw_rate": np.zeros(t.size)}
-    # the fusion's odometry: vx 0.1 m/s off at sigma 0.1, pitch exact at sigma 0.01 rad
+    # the fusion's odometry: vx 0.1 m/s off at sigma 0.1, pitch exact at sigma 0.01 rad, roll
+    # 0.03 rad off at sigma 0.01 rad
     path = {"x": 10.0 * t, "y": np.zeros(t.size), "pitch": np.full(t.size, -0.05)}
     odom = {"t": t, "vx": np.full(t.size, 10.1), "speed": np.full(t.size, 10.1), **path,
-            "var_vx": np.full(t.size, 0.01), "var_pitch": np.full(t.size, 1e-4)}
-    gt_odom = {"t": t, "vx": np.full(t.size, 10.0), "speed": np.full(t.size, 10.0), **path}
+            "roll": np.full(t.size, 0.03), "var_vx": np.full(t.size, 0.01), "var_pitch": np.full(t.size, 1e-4),
+            "var_roll": np.full(t.size, 1e-4)}
+    gt_odom = {"t": t, "vx": np.full(t.size, 10.0), "speed": np.full(t.size, 10.0), "roll": np.zeros(t.size),
+               **path}
     data = {"estimation/road_slope": slope, "ground_truth/road_slope": truth,
             "estimation/vehicle_state": state, "ground_truth/vehicle_state": gt_state,
             "estimation/odometry": odom, "ground_truth/odometry": gt_odom}
     groups, series = report.compute_groups(data, warmup_s=5.0)
     c = groups["consistency"]
     # yaw rate: no variance published, nothing to check
-    assert c["status"] == "ok" and set(series["consistency"]) == {"slope", "vx", "vy", "fusion_vx", "fusion_pitch"}
+    assert c["status"] == "ok" and set(series["consistency"]) == {"slope", "vx", "vy", "fusion_vx", "fusion_pitch",
+                                                                 "fusion_roll"}
     assert c["fusion_vx"]["nees"] == pytest.approx(1.0) and c["fusion_pitch"]["nees"] == pytest.approx(0.0)
+    assert c["fusion_roll"]["nees"] == pytest.approx(9.0) and c["fusion_roll"]["within_2sigma"] == 0.0
     assert c["slope"]["n"] == t.size - 50                          # after the warm-up
     assert c["slope"]["within_1sigma"] == pytest.approx(1.0)
     assert c["slope"]["nees"] == pytest.approx(0.81)
@@ -205,9 +210,9 @@ def test_consistency_group_checks_each_published_variance():
 
 
 @pytest.mark.parametrize("yaw_deg", [0.0, 90.0, 30.0])
-def test_the_pitch_variance_is_about_the_heading_left(yaw_deg):
+def test_the_tilt_variances_are_about_the_heading_and_its_left(yaw_deg):
     """The odometry's rotation covariance is about the fixed ENU axes: a car heading north
-    pitches about ENU x, not y."""
+    pitches about ENU x, not y, and rolls about ENU y."""
     from vehicle_estimation.evaluation.report import _extract
 
     yaw = math.radians(yaw_deg)
@@ -218,3 +223,4 @@ def test_the_pitch_variance_is_about_the_heading_left(yaw_deg):
     msg.pose.covariance = cov
     values = _extract("nav_msgs/msg/Odometry", msg)
     assert values["var_pitch"] == pytest.approx(math.sin(yaw) ** 2 * 1e-4 + math.cos(yaw) ** 2 * 9e-4)
+    assert values["var_roll"] == pytest.approx(math.cos(yaw) ** 2 * 1e-4 + math.sin(yaw) ** 2 * 9e-4)

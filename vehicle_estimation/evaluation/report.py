@@ -63,22 +63,24 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
         pos = msg.pose.pose.position
         q = msg.pose.pose.orientation
         roll, pitch, yaw = euler_from_quat(np.array([q.x, q.y, q.z, q.w]))
+        var_roll, var_pitch = _tilt_variances(msg.pose.covariance, float(yaw))
         return {"x": pos.x, "y": pos.y, "vx": tw.linear.x, "vy": tw.linear.y,
                 "speed": math.hypot(tw.linear.x, tw.linear.y),
                 "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw),
-                # REP-103 6x6 row-major: twist (vx, ...) and pose (x, y, z, then rotations about
-                # the fixed axes X, Y, Z); a small pitch error is the rotation about the
-                # heading's left, (-sin yaw, cos yaw, 0) (ZYX Euler angles, near level)
-                "var_vx": float(msg.twist.covariance[0]), "var_pitch": _pitch_variance(msg.pose.covariance, yaw)}
+                # REP-103 6x6 row-major: twist (vx, ...) and pose (x, y, z, then rotations)
+                "var_vx": float(msg.twist.covariance[0]), "var_roll": var_roll, "var_pitch": var_pitch}
     return None
 
 
-def _pitch_variance(pose_covariance, yaw: float) -> float:
-    """The variance of the pitch from an Odometry pose covariance whose rotation block is about
-    the fixed axes (REP-103; about ENU for ``estimation/odometry``)."""
+def _tilt_variances(pose_covariance, yaw: float) -> tuple[float, float]:
+    """The variances of the roll and the pitch from an Odometry pose covariance whose rotation
+    block is about the fixed axes (REP-103; about ENU for ``estimation/odometry``). Near level
+    (ZYX Euler angles) a roll error is the rotation about the heading, (cos yaw, sin yaw, 0),
+    and a pitch error the rotation about the heading's left, (-sin yaw, cos yaw, 0)."""
     rotation = np.asarray(pose_covariance, dtype=float).reshape(6, 6)[3:, 3:]
+    forward = np.array([math.cos(yaw), math.sin(yaw), 0.0])
     left = np.array([-math.sin(yaw), math.cos(yaw), 0.0])
-    return float(left @ rotation @ left)
+    return float(forward @ rotation @ forward), float(left @ rotation @ left)
 
 
 def _match_topic(available: Sequence[str], relative: str) -> str | None:
@@ -384,6 +386,8 @@ CONSISTENCY_SPEC = (
      "yaw_rate", "linear", "deg/s", 180.0 / math.pi),
     ("fusion_vx", "estimation/odometry", "vx", "var_vx", None, topics.GT_ODOMETRY, "vx", "linear", "m/s", 1.0),
     ("fusion_pitch", "estimation/odometry", "pitch", "var_pitch", None, topics.GT_ODOMETRY, "pitch", "linear",
+     "deg", 180.0 / math.pi),
+    ("fusion_roll", "estimation/odometry", "roll", "var_roll", None, topics.GT_ODOMETRY, "roll", "linear",
      "deg", 180.0 / math.pi),
 )
 
