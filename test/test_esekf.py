@@ -675,11 +675,11 @@ def test_gnss_makes_the_bias_observable_and_drops_the_unaided_prior(drive):
 
 
 def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), yaw_rate=0.0, nominal_rpy=(0.0, 0.0, 0.0),
-               **cfg):
+               straight_after_s=0.0, **cfg):
     """A filter aligned on level ground whose IMU sits ``pitch`` nose-up in the body (the nominal
     mounting ``nominal_rpy`` says no more), pulled away at 0.5 m/s^2 to ``top_speed`` on a level
-    road, turning at ``yaw_rate`` [rad/s] all the while, without GNSS: the vertical constraint
-    sees the body velocity times the mounting error."""
+    road, turning at ``yaw_rate`` [rad/s] all the while but the last ``straight_after_s``, without
+    GNSS: the vertical constraint sees the body velocity times the mounting error."""
     ekf = FusionEKF(FusionConfig(nh_sigma_z=0.1, estimate_mounting=True, mounting_rpy=nominal_rpy, **cfg))
     to_nominal = quat_to_rotmat(quat_from_euler(*nominal_rpy)).T
     f_level, w = (to_nominal @ x for x in _static_imu(grade=pitch))
@@ -693,8 +693,9 @@ def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), yaw_rate=0.0, n
         t_i = t + i * 0.005
         accel = 0.5 if 0.5 * i * 0.005 < top_speed else 0.0
         speed = min(top_speed, 0.5 * i * 0.005)
-        f = f_level + to_imu @ np.array([accel, yaw_rate * speed, 0.0])
-        ekf.process_imu(t_i, f, w + to_imu @ np.array([0.0, 0.0, yaw_rate]))
+        r = yaw_rate if i * 0.005 <= seconds - straight_after_s else 0.0
+        f = f_level + to_imu @ np.array([accel, r * speed, 0.0])
+        ekf.process_imu(t_i, f, w + to_imu @ np.array([0.0, 0.0, r]))
         if i % 2 == 0:
             ekf.update_speed(t_i, speed)
     return ekf
@@ -736,3 +737,22 @@ def test_without_gnss_a_corner_holds_the_mounting_pitch_and_refines_its_yaw(nomi
     straight = _pull_away(5.0, yaw_rate=0.01, nominal_rpy=nominal_rpy)    # below the gate
     assert straight.mounting_columns() == (True, True)
     assert abs(math.degrees(straight.mounting_rpy[1])) > 0.01
+
+
+def test_without_gnss_a_corner_loosens_the_vertical_constraint_for_a_while():
+    """In a corner the vertical constraint sees the roll error times the filter's lateral
+    velocity, which the sideslip and the body's roll sway put off: without GNSS it reads that
+    as a roll and becomes sure of it. So in a corner, and ``nh_cornering_hold_s`` after it (a
+    lane change's yaw rate passes through zero), it is at ``nh_sigma_z_cornering_without_gnss``;
+    a straight brings the tight one back. (What it does to the roll: test_validation_commonroad.)"""
+    def vertical_sigma(ekf):
+        return math.sqrt(ekf._moving_constraint_noise()[1, 1])
+
+    cornering = _pull_away(5.0, yaw_rate=0.1)
+    assert vertical_sigma(cornering) == pytest.approx(cornering.config.nh_sigma_z_cornering_without_gnss)
+    tight = _pull_away(5.0, yaw_rate=0.1, nh_sigma_z_cornering_without_gnss=0.1)
+    assert vertical_sigma(tight) == pytest.approx(0.1)
+    assert vertical_sigma(_pull_away(5.0, yaw_rate=0.01)) == pytest.approx(0.1)        # below the gate
+    hold = cornering.config.nh_cornering_hold_s
+    assert vertical_sigma(_pull_away(5.0, yaw_rate=0.1, straight_after_s=hold - 1.0)) == pytest.approx(1.0)
+    assert vertical_sigma(_pull_away(5.0, yaw_rate=0.1, straight_after_s=hold + 1.0)) == pytest.approx(0.1)

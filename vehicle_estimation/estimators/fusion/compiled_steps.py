@@ -44,11 +44,11 @@ class FusionCompiledSteps:
     _w_lp: np.ndarray
     _f_prev: np.ndarray | None
     _w_prev: np.ndarray | None
-    _w_nh: np.ndarray
     # FusionEKF's methods these steps share with its numpy path:
     _update_process_noise: Callable[[float], None]
     _held_direction: Callable[[], np.ndarray]
     _mounting_min_speeds: Callable[[], tuple[float, float]]
+    _moving_constraint_noise: Callable[[], np.ndarray]
 
     def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """``_update`` (Eqs. (37)-(44)) by :func:`.ins_kernels.joseph_update` and
@@ -91,7 +91,7 @@ class FusionCompiledSteps:
         q, R, Rm, P = np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((N_ERR, N_ERR))
         res = ins_kernels.imu_step(dt, c.stationary_imu_tau_s, self._f_prev, self._w_prev, self._ba, self._bg,
                                    self._g_vec, self._p, self._v, self._q, self._R, self._a_lp, self._w_lp, self._P,
-                                   self._qd, _MOVING_ROWS, self._w_nh, c.full_velocity_jacobian,
+                                   self._qd, _MOVING_ROWS, self._moving_constraint_noise(), c.full_velocity_jacobian,
                                    *self._mounting_min_speeds(), c.estimate_mounting, self._held_direction(), self._Rm,
                                    q, R, Rm, P)
         self._q, self._R, self._P = q, R, P      # the propagation, at least

@@ -175,6 +175,16 @@ class FusionConfig:
         0.02, "Without GNSS the vehicle constraints refine the mounting pitch only while the low-passed yaw "
         "rate stays below this [rad/s]: in a corner the sideslip and the roll that they do not model "
         "reach them as a mounting pitch", low=0.0, low_open=True)
+    nh_sigma_z_cornering_without_gnss: float = setting(
+        1.0, "Without GNSS, the vertical non-holonomic constraint's std in a corner and for "
+        "nh_cornering_hold_s after it [m/s] (a corner: the low-passed yaw rate above "
+        "mounting_max_yaw_rate_without_gnss; never tighter than nh_sigma_z): there the tight constraint "
+        "reads the sideslip and the body roll that neither constraint models as a roll, and the "
+        "filter becomes sure of it", low=0.0, low_open=True)
+    nh_cornering_hold_s: float = setting(
+        3.0, "How long after a corner the vertical constraint stays at nh_sigma_z_cornering_without_gnss "
+        "[s]: a lane change's yaw rate passes through zero between its turns, and the lateral "
+        "velocity a corner leaves wrong takes seconds to settle", low=0.0)
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field."""

@@ -138,6 +138,8 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._w_gnss = np.diag(np.asarray(c.gnss_sigma, float) ** 2)
         self._g_vec = np.array([0.0, 0.0, -c.gravity])
         self._w_nh = np.diag([c.nh_sigma_y ** 2, c.nh_sigma_z ** 2])   # read only
+        self._w_nh_cornering = np.diag([c.nh_sigma_y ** 2,                # read only
+                                        max(c.nh_sigma_z, c.nh_sigma_z_cornering_without_gnss) ** 2])
         self._eye15 = np.eye(N_ERR)
         self._eye3 = np.eye(3)
         self._di = np.arange(N_ERR)
@@ -174,6 +176,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._speed_variance: float | None = None   # the last CAN speed's stated variance
         self._last_gnss: np.ndarray | None = None
         self._t_nh = -math.inf
+        self._t_cornering = -math.inf   # the last IMU stamp at which the vehicle cornered
         self._a_lp = np.zeros(3)      # low-passed gravity-free acceleration (ENU)
         self._w_lp = np.zeros(3)      # low-passed compensated angular rate (FLU)
         self._hint: bool | None = None
@@ -421,7 +424,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             W = np.diag(np.full(len(rows), c.stationary_sigma ** 2))
         else:
             rows = [1, 2]
-            W = self._w_nh
+            W = self._moving_constraint_noise()
         if self.compiled:
             self._constraint_update_compiled(rows, W)
             return
