@@ -176,7 +176,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._speed_variance: float | None = None   # the last CAN speed's stated variance
         self._last_gnss: np.ndarray | None = None
         self._t_nh = -math.inf
-        self._t_cornering = -math.inf   # the last IMU stamp at which the vehicle cornered
+        self._t_cornering = -math.inf   # the last IMU stamp whose step ended in a corner
         self._a_lp = np.zeros(3)      # low-passed gravity-free acceleration (ENU)
         self._w_lp = np.zeros(3)      # low-passed compensated angular rate (FLU)
         self._hint: bool | None = None
@@ -309,6 +309,8 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
                 if nh_due:
                     self._t_nh = t
                     self._nh_update(t)
+            if self._cornering():
+                self._t_cornering = t
         self._t = t
         self._f_prev = f
         self._w_prev = w

@@ -118,8 +118,9 @@ class FusionOutputs:
 
     def _moving_constraint_noise(self) -> np.ndarray:
         """W of the lateral and vertical constraints of a moving vehicle at the current IMU
-        stamp: without GNSS, in a corner and ``nh_cornering_hold_s`` after it, the vertical one
-        at ``nh_sigma_z_cornering_without_gnss``.
+        stamp: without GNSS, in a corner and ``nh_cornering_hold_s`` after it (``_t_cornering``,
+        the last IMU stamp that ended in a corner), the vertical one at
+        ``nh_sigma_z_cornering_without_gnss``.
 
         The tight vertical constraint is there for the pitch and the mounting pitch (on a
         straight, the body's vertical velocity is the pitch error times the speed). In a corner
@@ -129,12 +130,9 @@ class FusionOutputs:
         roll it was sure of: on CommonRoad's lane change without GNSS the roll was 1.6 deg off
         (RMS) at a sigma of 0.7 deg, 52 % within 2 sigma, NEES 31. With the looser constraint
         there: 0.40 deg, 100 %, 0.19 (GNSS: 100 %, 0.25, unchanged)."""
-        if self.gnss_aided:
+        if self.gnss_aided or self._t is None:
             return self._w_nh
-        t = self._t if self._t is not None else -math.inf
-        if self._cornering():
-            self._t_cornering = t
-        return self._w_nh_cornering if t - self._t_cornering <= self.config.nh_cornering_hold_s else self._w_nh
+        return self._w_nh_cornering if self._t - self._t_cornering <= self.config.nh_cornering_hold_s else self._w_nh
 
     @property
     def accel_bias_observed(self) -> bool:
