@@ -128,8 +128,8 @@ class FusionOutputs:
         off by the sideslip and the roll sway the lateral constraint does not model; without
         GNSS nothing else pins it, and the filter took what the two constraints missed for a
         roll it was sure of: on CommonRoad's lane change without GNSS the roll was 1.6 deg off
-        (RMS) at a sigma of 0.7 deg, 52 % within 2 sigma, NEES 31. With the looser constraint
-        there: 0.40 deg, 100 %, 0.19 (GNSS: 100 %, 0.25, unchanged)."""
+        (RMS) at a sigma of 0.7 deg, 52 % within 2 sigma, NEES 38. With the looser constraint
+        there: 0.40 deg, 100 %, 0.20 (GNSS: 100 %, 0.25, unchanged)."""
         if self.gnss_aided or self._t is None:
             return self._w_nh
         return self._w_nh_cornering if self._t - self._t_cornering <= self.config.nh_cornering_hold_s else self._w_nh
