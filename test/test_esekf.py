@@ -745,14 +745,13 @@ def test_without_gnss_a_corner_loosens_the_vertical_constraint_for_a_while():
     as a roll and becomes sure of it. So in a corner, and ``nh_cornering_hold_s`` after it (a
     lane change's yaw rate passes through zero), it is at ``nh_sigma_z_cornering_without_gnss``;
     a straight brings the tight one back. (What it does to the roll: test_validation_commonroad.)"""
-    def vertical_sigma(ekf):
-        return math.sqrt(ekf._moving_constraint_noise()[1, 1])
-
     cornering = _pull_away(5.0, yaw_rate=0.1)
-    assert vertical_sigma(cornering) == pytest.approx(cornering.config.nh_sigma_z_cornering_without_gnss)
+    loose = cornering.config.nh_sigma_z_cornering_without_gnss
+    assert cornering.vertical_constraint_sigma == pytest.approx(loose)
     tight = _pull_away(5.0, yaw_rate=0.1, nh_sigma_z_cornering_without_gnss=0.1)
-    assert vertical_sigma(tight) == pytest.approx(0.1)
-    assert vertical_sigma(_pull_away(5.0, yaw_rate=0.01)) == pytest.approx(0.1)        # below the gate
+    assert tight.vertical_constraint_sigma == pytest.approx(0.1)
+    assert _pull_away(5.0, yaw_rate=0.01).vertical_constraint_sigma == pytest.approx(0.1)     # below the gate
     hold = cornering.config.nh_cornering_hold_s
-    assert vertical_sigma(_pull_away(5.0, yaw_rate=0.1, straight_after_s=hold - 1.0)) == pytest.approx(1.0)
-    assert vertical_sigma(_pull_away(5.0, yaw_rate=0.1, straight_after_s=hold + 1.0)) == pytest.approx(0.1)
+    for straight_s, sigma in ((hold - 1.0, loose), (hold + 1.0, 0.1)):
+        after = _pull_away(5.0, yaw_rate=0.1, straight_after_s=straight_s)
+        assert after.vertical_constraint_sigma == pytest.approx(sigma)

@@ -109,6 +109,10 @@ def test_diagnostics_name_each_fallback(replayed):
     assert set(mounting) == {"refined by the vehicle constraints (no GNSS)", "held below 1 m/s without GNSS",
                              "yaw refined, pitch held in a corner (no GNSS)"}
     assert mounting[-1] == "held below 1 m/s without GNSS"          # the drive ends at rest
+    # ... and its vertical constraint loosened after the corners
+    vertical = {status["vertical constraint"] for status in diagnostic_statuses(replayed, "fusion")
+                if "vertical constraint" in status}
+    assert vertical == {"0.1 m/s", "1 m/s (loosened after a corner: no GNSS)"}
     assert diagnostics["road_slope"]["slope source"].startswith("fusion_pitch")
     assert diagnostics["vehicle_state"]["vx source"].startswith("vehicle/speed")
 

@@ -279,6 +279,9 @@ class FusionNode(EstimatorNode):
                     else "refined by the vehicle constraints (no GNSS)" if pitch
                     else "yaw refined, pitch held in a corner (no GNSS)" if yaw
                     else f"held below {ekf.config.mounting_min_speed_without_gnss:g} m/s without GNSS")
+            sigma = ekf.vertical_constraint_sigma
+            values["vertical constraint"] = f"{sigma:g} m/s" + (
+                " (loosened after a corner: no GNSS)" if sigma > ekf.config.nh_sigma_z else "")
         for k, v in getattr(ekf, "rejected", {}).items():
             values[f"filter rejected {k}"] = str(v)
         for k, v in getattr(ekf, "events", {}).items():     # imu_gap, align_restart, ...

@@ -135,6 +135,12 @@ class FusionOutputs:
         return self._w_nh_cornering if self._t - self._t_cornering <= self.config.nh_cornering_hold_s else self._w_nh
 
     @property
+    def vertical_constraint_sigma(self) -> float:
+        """The vertical non-holonomic constraint's std for a moving vehicle now [m/s]: above
+        ``nh_sigma_z`` while it is loosened after a corner without GNSS."""
+        return math.sqrt(float(self._moving_constraint_noise()[1, 1]))
+
+    @property
     def accel_bias_observed(self) -> bool:
         """GNSS has aided the filter since the alignment, so its accelerometer bias is more than
         the prior (and held at what it learned through a later outage)."""
