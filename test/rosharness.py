@@ -1,8 +1,12 @@
-"""Small helpers for rclpy tests: one executor, a probe node that publishes and collects."""
+"""Small helpers for rclpy tests: one executor, a probe node that publishes and collects, and
+replays run side by side."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 import rclpy
@@ -109,3 +113,18 @@ class Harness:
 def init_rclpy() -> None:
     if not rclpy.ok():
         rclpy.init()
+
+
+def replay_side_by_side(runs: dict[str, list[str]], out_dir: Path, timeout_s: float = 900.0) -> dict[str, Path]:
+    """``vehicle-estimation replay ARGS --in-process`` for each ``name: ARGS`` at once (one core
+    each), recorded to ``out_dir / estimates_<name>``: the record of each, once all have ended
+    well."""
+    records = {name: out_dir / f"estimates_{name}" for name in runs}
+    procs = {name: subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "replay", *args, "--record",
+                                     str(records[name]), "--quiet", "--in-process"],
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+             for name, args in runs.items()}
+    for proc in procs.values():
+        output, _ = proc.communicate(timeout=timeout_s)
+        assert proc.returncode == 0, output[-3000:]
+    return records

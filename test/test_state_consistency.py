@@ -103,8 +103,7 @@ def test_the_imus_stated_noise_keeps_the_learnt_yaw_rate_noise_honest(tmp_path):
     holds the model's yaw error and the variance is cautious instead (NEES 0.10). Through the
     nodes, the demo drive with the IMU covariance in the bag and with it zeroed (unknown,
     REP-145)."""
-    import subprocess
-    import sys
+    from rosharness import replay_side_by_side
 
     from vehicle_estimation.evaluation.report import read_bag
     from vehicle_estimation.io.bagtools import rewrite_bag
@@ -118,15 +117,10 @@ def test_the_imus_stated_noise_keeps_the_learnt_yaw_rate_noise_honest(tmp_path):
         msg.angular_velocity_covariance[:] = 0.0
 
     sources = {"stated": bag, "unknown": rewrite_bag(bag, tmp_path / "no_covariance", edit={T.IMU: unknown_covariance})}
-    runs = {name: subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "replay", str(source), "--record",
-                                    str(tmp_path / f"estimates_{name}"), "--quiet", "--in-process"],
-                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-            for name, source in sources.items()}      # side by side: one core each
+    records = replay_side_by_side({name: [str(source)] for name, source in sources.items()}, tmp_path)
     within, nees = {}, {}
-    for name, proc in runs.items():
-        output, _ = proc.communicate(timeout=900)
-        assert proc.returncode == 0, output
-        data = read_bag(tmp_path / f"estimates_{name}", [T.VEHICLE_STATE, T.GT_VEHICLE_STATE])
+    for name, record in records.items():
+        data = read_bag(record, [T.VEHICLE_STATE, T.GT_VEHICLE_STATE])
         est, truth = data[T.VEHICLE_STATE], data[T.GT_VEHICLE_STATE]
         sel = est["t"] >= est["t"][0] + WARMUP_S
         error = est["yaw_rate"][sel] - np.interp(est["t"][sel], truth["t"], truth["yaw_rate"])

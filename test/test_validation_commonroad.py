@@ -134,27 +134,20 @@ def test_without_gnss_the_fusion_roll_stays_honest_through_a_double_lane_change(
     vertical constraint as tight in the corners as on the straights (the layer), the filter
     reads the sideslip and the roll sway it does not model as a roll and becomes sure of it
     (1.6 deg RMS at a sigma of 0.7 deg, 52 % within 2 sigma)."""
-    import subprocess
-    import sys
+    from rosharness import replay_side_by_side
 
     from vehicle_estimation.evaluation.report import consistency_group, read_bag
-    from vehicle_estimation.io.bagtools import rewrite_bag
     from vehicle_estimation.paths import params_file
+    from vehicle_estimation.validation.validate import _without_gnss_and_wheels
 
-    bag = cr.generate(tmp_path, manoeuvres=["dlc"])[0]
-    without = rewrite_bag(bag, tmp_path / "dlc_no_gnss_no_wheels", drop_topics=[T.GNSS], drop_joints=T.WHEEL_JOINTS)
+    without = _without_gnss_and_wheels(cr.generate(tmp_path, manoeuvres=["dlc"])[0])
     tight = tmp_path / "tight.yaml"
     tight.write_text("fusion:\n  ros__parameters:\n    fusion.nh_sigma_z_cornering_without_gnss: 0.1\n")
-    runs = {name: subprocess.Popen([sys.executable, "-m", "vehicle_estimation", "replay", str(without), "--record",
-                                    str(tmp_path / name), "--quiet", "--in-process", "--vehicle",
-                                    str(params_file("commonroad_bmw320i")), "--params", "estimation", *extra],
-                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-            for name, extra in (("shipped", []), ("tight", ["--params", str(tight)]))}   # one core each
+    common = [str(without), "--vehicle", str(params_file("commonroad_bmw320i")), "--params", "estimation"]
+    records = replay_side_by_side({"shipped": common, "tight": [*common, "--params", str(tight)]}, tmp_path, 600.0)
     roll = {}
-    for name, proc in runs.items():
-        output, _ = proc.communicate(timeout=600)
-        assert proc.returncode == 0, output[-3000:]
-        checked, _ = consistency_group(read_bag(tmp_path / name, [T.ODOMETRY, T.GT_ODOMETRY]), 5.0)
+    for name, record in records.items():
+        checked, _ = consistency_group(read_bag(record, [T.ODOMETRY, T.GT_ODOMETRY]), 5.0)
         roll[name] = checked["fusion_roll"]
     assert roll["shipped"]["within_2sigma"] >= 0.9 and roll["shipped"]["nees"] < 2.0, roll
     assert roll["tight"]["within_2sigma"] < 0.8, roll
