@@ -633,14 +633,16 @@ def test_without_gnss_the_accelerometer_bias_is_held_and_its_prior_is_in_the_gra
     # the published bias covariance and the grade variance carry the unaided prior
     assert held.accel_bias_covariance[0, 0] >= cfg.unaided_accel_bias_sigma ** 2
     assert min(sigmas) >= cfg.unaided_accel_bias_sigma / G * 0.99
-    # ... and so does the odometry's pitch (about base_link y); its roll and yaw, and the
-    # attitude that goes with the compensated IMU, keep P's (their errors cancel in a - g)
+    # ... and so do the odometry's pitch and roll (about base_link y and x; a lateral bias is a
+    # roll no vehicle constraint tells apart); its yaw, and the attitude that goes with the
+    # compensated IMU, keep P's (their errors cancel in a - g)
     tilt = (cfg.unaided_accel_bias_sigma / G) ** 2
     added = held.pose_attitude_covariance - held.attitude_covariance
     x_axis, y_axis, z_axis = held.rotation_matrix.T
-    assert y_axis @ added @ y_axis == pytest.approx(tilt, rel=1e-9)
-    for axis in (x_axis, z_axis):
-        assert axis @ added @ axis == pytest.approx(0.0, abs=1e-15)
+    for axis in (x_axis, y_axis):
+        assert axis @ added @ axis == pytest.approx(tilt, rel=1e-9)
+    assert z_axis @ added @ z_axis == pytest.approx(0.0, abs=1e-15)
+    assert x_axis @ added @ y_axis == pytest.approx(0.0, abs=1e-15)
     assert math.degrees(_rms(errors)) < 0.3
     assert np.mean(np.abs(errors) < 2.0 * sigmas) > 0.95
 
@@ -669,6 +671,15 @@ def test_gnss_makes_the_bias_observable_and_drops_the_unaided_prior(drive):
     cfg = ekf.config
     assert ekf.accel_bias_covariance[0, 0] < cfg.unaided_accel_bias_sigma ** 2
     np.testing.assert_array_equal(ekf.pose_attitude_covariance, ekf.attitude_covariance)
+    # a mounting roll the constraints cannot refine is the roll's alone, with GNSS too
+    sigma, shipped = math.radians(1.0), cfg.mounting_roll_sigma
+    cfg.mounting_roll_sigma = sigma
+    try:
+        added = ekf.pose_attitude_covariance - ekf.attitude_covariance
+    finally:
+        cfg.mounting_roll_sigma = shipped
+    np.testing.assert_allclose(added, sigma ** 2 * np.outer(ekf.rotation_matrix[:, 0], ekf.rotation_matrix[:, 0]),
+                               atol=1e-15)
     running = out["running"]
     # shortly after the heading is fixed the GNSS-aided grade is tighter than the unaided prior
     assert np.nanmin(out["grade_var"][running]) < (cfg.unaided_accel_bias_sigma / G) ** 2

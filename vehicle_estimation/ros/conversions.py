@@ -225,21 +225,23 @@ def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
 
 
 def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
-    """``(stamp, (stamp, g_y, variance of g_y))`` of an Odometry, for a history: the share of
-    gravity on the body y axis, ``R[2, 1] = sin(roll) cos(pitch)`` of the base_link -> ENU
-    ``pose.pose.orientation``, and its variance from the pose covariance (NaN where that is
-    not given: all zeros, a negative diagonal).
+    """``(stamp, (stamp, g_y, variance of g_y))`` of the fusion's compensated IMU
+    (``estimation/imu``), for a history: the share of gravity on the body y axis,
+    ``R[2, 1] = sin(roll) cos(pitch)`` of the base_link -> ENU ``orientation``, and its variance
+    from ``orientation_covariance`` (NaN where that is not given: all zeros, a negative diagonal).
 
     A body-fixed accelerometer reads ``g g_y`` on y on top of the lateral acceleration when the
-    body rolls on its suspension or the road is banked."""
+    body rolls on its suspension or the road is banked. The attitude is the one that goes with
+    the compensated specific force, not the odometry's: that one also carries what no sensor
+    tells apart from a roll (the unaided lateral bias, the mounting roll), which cancels here."""
     stamp = msg.header.stamp
     t = stamp_to_sec(stamp)
-    q = msg.pose.pose.orientation
+    q = msg.orientation
     share = gravity_on_body_y(q.x, q.y, q.z, q.w)
     if math.isnan(share):
         return None
-    c = msg.pose.covariance
-    cov_xx, cov_xy, cov_yy = float(c[21]), float(c[22]), float(c[28])
+    c = msg.orientation_covariance
+    cov_xx, cov_xy, cov_yy = float(c[0]), float(c[1]), float(c[4])
     given = cov_xx > 0.0 and cov_yy > 0.0
     variance = gravity_on_body_y_variance(q.x, q.y, q.z, q.w, cov_xx, cov_xy, cov_yy) if given else math.nan
     return (t, (t, share, variance))

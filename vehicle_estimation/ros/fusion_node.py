@@ -84,7 +84,8 @@ class FusionNode(EstimatorNode):
         # Each publish costs ~0.1 ms of Python and DDS: at the IMU rate this output alone was a
         # third of the node's CPU. Set it at or above the IMU rate for every sample.
         self.imu_rate = self.declare_float(
-            "imu_rate_hz", 50.0, "Rate of estimation/imu (compensated IMU) [Hz]", 0.1, 10000.0)
+            "imu_rate_hz", 50.0, "Rate of estimation/imu (compensated IMU; the vehicle-state node "
+            "takes its roll from it) [Hz]", 0.1, 10000.0)
         self._last_bias_t = -math.inf
         self._last_imu_pub_t = -math.inf
         self.subscribe_primary(Imu, topics.IMU, self.on_imu)

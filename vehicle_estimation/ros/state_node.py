@@ -27,8 +27,8 @@ Shared tuning of ``ckf``/``vbackf`` (Sec. 7.1 defaults): ``p0_diag``, ``q_diag``
 
 Subscribes (sensor-data QoS): ``imu/data`` (measurement [ax, ay, r], the trigger),
 ``vehicle/joint_states`` (steering-wheel angle, four wheel speeds). From other nodes:
-``estimation/imu_bias`` (fusion IMU bias), ``estimation/odometry`` (the fusion attitude, for
-``roll_compensation``), ``estimation/road_slope_stamped`` and
+``estimation/imu_bias`` (fusion IMU bias), ``estimation/imu`` (the fusion attitude that goes
+with the compensated specific force, for ``roll_compensation``), ``estimation/road_slope_stamped`` and
 ``estimation/mass_stamped`` (paper 004 Fig. 1: state <- slope, mass). Before the slope or
 mass arrive the filter uses slope 0 and the vehicle's nominal mass, and says so in
 ``/diagnostics``.
@@ -44,7 +44,8 @@ Body roll: the models take the measured lateral acceleration for tyre force over
 body-fixed IMU also reads ``g sin(roll) cos(pitch)`` on y whenever the body rolls on its
 suspension or the road is banked (~0.7 m/s^2 at 4 deg of roll). With ``roll_compensation``
 (on by default) it is removed with the fusion's attitude, which integrates the body's roll
-rate; before the fusion has aligned the samples pass uncorrected, and ``/diagnostics``
+rate (from ``estimation/imu``, not the odometry: the odometry's roll variance also carries the
+mounting roll and the unaided lateral bias, which cancel in the bias-compensated force); before the fusion has aligned the samples pass uncorrected, and ``/diagnostics``
 (``roll compensation``) says which.
 
 Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped in
@@ -59,7 +60,6 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
-from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 
@@ -158,11 +158,11 @@ class StateNode(EstimatorNode):
             "roll_compensation", True,
             "Remove from the measured lateral acceleration the gravity that the body's roll (on "
             "its suspension, and the road's bank) puts into it, with the fusion attitude "
-            "(estimation/odometry); without it the tyre model reads g sin(roll) as lateral force")
+            "(estimation/imu); without it the tyre model reads g sin(roll) as lateral force")
         self.roll_error_correlation_s = self.declare_float(
             "roll_error_correlation_s", 1.0,
             "Correlation time of the fusion's roll error [s]. The roll-compensated ay carries "
-            "g^2 var(roll) of error (the fusion's pose covariance) that changes over seconds, "
+            "g^2 var(roll) of error (the fusion's attitude covariance) that changes over seconds, "
             "which a filter stepping every dt weighs as white noise of 2 tau / dt times that "
             "variance, added to its ay noise; 0 = the fusion's roll taken as exact", 0.0, 60.0)
         self.speed_fallback_std = self.declare_float(
@@ -270,7 +270,7 @@ class StateNode(EstimatorNode):
             self.subscribe_primary(TwistWithCovarianceStamped, topics.SPEED, self.on_speed)
         self.subscribe_imu_bias(self.bias)
         if self.roll_compensation:
-            self.subscribe_upstream(Odometry, topics.ODOMETRY, self.attitude, lateral_gravity_entry)
+            self.subscribe_upstream(Imu, topics.IMU_COMPENSATED, self.attitude, lateral_gravity_entry)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
         self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
 

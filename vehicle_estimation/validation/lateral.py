@@ -99,7 +99,7 @@ def read_drive(bag: Path, imu_mounting_rpy=(0.0, 0.0, 0.0)) -> dict[str, dict[st
                 q = msg.pose.pose.orientation
                 n = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w
                 # R[2, 1] = sin(roll) cos(pitch): the share of gravity on the body y axis, as
-                # ros.conversions.lateral_gravity_entry reads it off the fusion's Odometry
+                # ros.conversions.lateral_gravity_entry reads it off the fusion's estimation/imu
                 rows[topic].append((t, 2.0 * (q.y * q.z + q.w * q.x) / n if n > 0.5 else math.nan))
             elif topic == T.SPEED:
                 rows[topic].append((t, msg.twist.twist.linear.x, msg.twist.covariance[0]))

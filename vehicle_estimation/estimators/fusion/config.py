@@ -157,6 +157,9 @@ class FusionConfig:
                                   low=-math.pi, high=math.pi, each=True)
     estimate_mounting: bool = setting(False, "Refine the mounting pitch and yaw online (needs nh_sigma_z <= 1)")
     p0_mounting_sigma: float = setting(0.035, "Prior std of the mounting pitch and yaw refinement [rad]", low=0.0)
+    mounting_roll_sigma: float = setting(0.0, "Std of the nominal mounting roll, which no constraint refines: it "
+                                         "enters the published roll's variance (estimation/odometry); 0 = the "
+                                         "IMU calibrated to the body, as in the paper [rad]", low=0.0)
     q_mounting_sigma: float = setting(1e-7, "Mounting random walk per sample [rad]: a mounting does not move",
                                       low=0.0)
     # --- without GNSS (not in the paper, which always has it; see the class docstring) ---

@@ -218,16 +218,20 @@ class FusionOutputs:
 
     @property
     def pose_attitude_covariance(self) -> np.ndarray:
-        """:attr:`attitude_covariance` of the attitude as ``estimation/odometry`` publishes it:
-        until GNSS has observed the accelerometer bias, its prior along base_link x enters as a
-        pitch (a bias b along x reads as a pitch of b / g), as in :attr:`road_grade_variance`.
-        The roll keeps P's: the vehicle-state node removes gravity from the bias-compensated
-        lateral force with it, and there the roll's and the lateral bias's errors cancel (P knows
-        their sum); ``estimation/imu``, whose orientation goes with its compensated specific
-        force, keeps :attr:`attitude_covariance` whole."""
-        left = self.rotation_matrix[:, 1]               # base_link y in ENU: the pitch axis
+        """:attr:`attitude_covariance` of the attitude as ``estimation/odometry`` publishes it, with
+        what P cannot know about the vehicle's tilt. Until GNSS has observed the accelerometer bias,
+        its prior along base_link x enters as a pitch and along y as a roll (a bias b reads as a
+        tilt of b / g), as in :attr:`road_grade_variance`; and the nominal mounting roll, which no
+        constraint refines, enters the roll by ``mounting_roll_sigma`` (P's attitude is the IMU's;
+        the car's differs from it by the mounting error). ``estimation/imu`` keeps
+        :attr:`attitude_covariance` whole: its orientation goes with its compensated specific
+        force, where the tilt's and the bias's errors cancel (P knows their sum), and the
+        vehicle-state node removes gravity from the lateral force with that pair."""
+        axes = self.rotation_matrix                     # base_link x (roll) and y (pitch) in ENU
         tilt = self._unaided_bias_variance / self.config.gravity ** 2
-        return self.attitude_covariance + tilt * np.outer(left, left)
+        roll = tilt + self.config.mounting_roll_sigma ** 2
+        return (self.attitude_covariance + tilt * np.outer(axes[:, 1], axes[:, 1])
+                + roll * np.outer(axes[:, 0], axes[:, 0]))
 
     @property
     def _unaided_bias_variance(self) -> float:
