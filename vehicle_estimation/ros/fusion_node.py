@@ -5,8 +5,10 @@ wheel-speed fallback, ``vehicle/joint_states``: while ``vehicle/speed`` is missi
 (``fusion.speed_timeout_s``), the mean speed of the undriven wheels times
 ``vehicle.wheel_radius`` is the speed the filter aligns and navigates with, and
 ``/diagnostics`` says so (``speed source``).
-Publishes: ``estimation/odometry`` (pose in ENU ``odom``, twist in ``base_link``),
-``estimation/imu`` (bias-compensated IMU with the estimated orientation, at ``imu_rate_hz``) and
+Publishes: ``estimation/odometry`` (pose in ENU ``odom``, twist in ``base_link``; the tilt's
+covariance with what no sensor separates from it: the mounting roll, an unaided bias),
+``estimation/imu`` (bias-compensated IMU with the estimated orientation and the filter's own
+covariance of it, the attitude its specific force goes with; at ``imu_rate_hz``) and
 ``estimation/fusion/road_grade`` (pitch-derived grade, stamped companion: x = grade [rad,
 +uphill], y = variance, z = converged).
 
