@@ -182,13 +182,14 @@ def test_consistency_group_checks_each_published_variance():
              "var_vx": np.full(t.size, 0.0625), "var_vy": np.full(t.size, 1.0), "var_yaw_rate": np.zeros(t.size)}
     gt_state = {"t": t, "vx": np.full(t.size, 10.0), "vy": np.zeros(t.size), "yaw_rate": np.zeros(t.size)}
     # the fusion's odometry: vx 0.1 m/s off at sigma 0.1, pitch exact at sigma 0.01 rad, roll
-    # 0.03 rad off at sigma 0.01 rad
+    # 0.03 rad off at sigma 0.01 rad, yaw rate 0.002 rad/s off at sigma 0.001 rad/s
     path = {"x": 10.0 * t, "y": np.zeros(t.size), "pitch": np.full(t.size, -0.05)}
     odom = {"t": t, "vx": np.full(t.size, 10.1), "speed": np.full(t.size, 10.1), **path,
             "roll": np.full(t.size, 0.03), "var_vx": np.full(t.size, 0.01), "var_pitch": np.full(t.size, 1e-4),
-            "var_roll": np.full(t.size, 1e-4)}
+            "var_roll": np.full(t.size, 1e-4), "yaw_rate": np.full(t.size, 0.002),
+            "var_yaw_rate": np.full(t.size, 1e-6)}
     gt_odom = {"t": t, "vx": np.full(t.size, 10.0), "speed": np.full(t.size, 10.0), "roll": np.zeros(t.size),
-               **path}
+               "yaw_rate": np.zeros(t.size), **path}
     data = {"estimation/road_slope": slope, "ground_truth/road_slope": truth,
             "estimation/vehicle_state": state, "ground_truth/vehicle_state": gt_state,
             "estimation/odometry": odom, "ground_truth/odometry": gt_odom}
@@ -196,7 +197,8 @@ def test_consistency_group_checks_each_published_variance():
     c = groups["consistency"]
     # yaw rate: no variance published, nothing to check
     assert c["status"] == "ok" and set(series["consistency"]) == {"slope", "vx", "vy", "fusion_vx", "fusion_pitch",
-                                                                 "fusion_roll"}
+                                                                 "fusion_roll", "fusion_yaw_rate"}
+    assert c["fusion_yaw_rate"]["nees"] == pytest.approx(4.0)
     assert c["fusion_vx"]["nees"] == pytest.approx(1.0) and c["fusion_pitch"]["nees"] == pytest.approx(0.0)
     assert c["fusion_roll"]["nees"] == pytest.approx(9.0) and c["fusion_roll"]["within_2sigma"] == 0.0
     assert c["slope"]["n"] == t.size - 50                          # after the warm-up

@@ -66,9 +66,10 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
         var_roll, var_pitch = _tilt_variances(msg.pose.covariance, float(yaw))
         return {"x": pos.x, "y": pos.y, "vx": tw.linear.x, "vy": tw.linear.y,
                 "speed": math.hypot(tw.linear.x, tw.linear.y),
-                "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw),
+                "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw), "yaw_rate": tw.angular.z,
                 # REP-103 6x6 row-major: twist (vx, ...) and pose (x, y, z, then rotations)
-                "var_vx": float(msg.twist.covariance[0]), "var_roll": var_roll, "var_pitch": var_pitch}
+                "var_vx": float(msg.twist.covariance[0]), "var_yaw_rate": float(msg.twist.covariance[35]),
+                "var_roll": var_roll, "var_pitch": var_pitch}
     return None
 
 
@@ -389,6 +390,8 @@ CONSISTENCY_SPEC = (
      "deg", 180.0 / math.pi),
     ("fusion_roll", "estimation/odometry", "roll", "var_roll", None, topics.GT_ODOMETRY, "roll", "linear",
      "deg", 180.0 / math.pi),
+    ("fusion_yaw_rate", "estimation/odometry", "yaw_rate", "var_yaw_rate", None, topics.GT_ODOMETRY, "yaw_rate",
+     "linear", "deg/s", 180.0 / math.pi),
 )
 
 
@@ -545,7 +548,7 @@ def format_share(x: Any) -> str:
 def format_consistency(rows: dict[str, dict]) -> list[str]:
     """Shares of the errors within 1/2/3 sigma of the published variance (Gaussian: 68/95/99.7 %)
     and NEES (honest: 1), over every sample and over those flagged converged."""
-    head = (f"{'consistency':<12}{'n':>7}{'1σ':>7}{'2σ':>7}{'3σ':>7}{'NEES':>9}"
+    head = (f"{'consistency':<16}{'n':>7}{'1σ':>7}{'2σ':>7}{'3σ':>7}{'NEES':>9}"
             f"{'conv.':>8}{'conv. 2σ':>10}{'conv. >3σ':>11}{'conv. NEES':>12}")
     lines = [head, "-" * len(head)]
     for name, c in rows.items():
@@ -555,7 +558,7 @@ def format_consistency(rows: dict[str, dict]) -> list[str]:
         share = {key: format_share(c.get(key)) for key in (
             "within_1sigma", "within_2sigma", "within_3sigma", "converged_share", "converged_within_2sigma",
             "converged_beyond_3sigma")}
-        lines.append(f"{name:<12}{c.get('n', 0):>7}{share['within_1sigma']:>7}{share['within_2sigma']:>7}"
+        lines.append(f"{name:<16}{c.get('n', 0):>7}{share['within_1sigma']:>7}{share['within_2sigma']:>7}"
                      f"{share['within_3sigma']:>7}{num('nees'):>9}{share['converged_share']:>8}"
                      f"{share['converged_within_2sigma']:>10}{share['converged_beyond_3sigma']:>11}"
                      f"{num('converged_nees'):>12}")

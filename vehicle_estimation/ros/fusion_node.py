@@ -31,6 +31,7 @@ from sensor_msgs.msg import Imu, JointState, NavSatFix, NavSatStatus
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane
+from vehicle_estimation.estimators.common.noise import SuccessiveDifferenceNoise, with_floor
 from vehicle_estimation.estimators.common.rotations import rotmat_to_quat
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF
@@ -49,6 +50,13 @@ SPEED_FROM_CAN, SPEED_FROM_WHEELS = "vehicle/speed", "wheel speeds (no vehicle/s
 FREE_HEADING = ("gnss/fix: no heading from GNSS yet, so free heading: odom = the pose at alignment, "
                 "position dead-reckoned")
 
+
+def _stated(covariance) -> np.ndarray | None:
+    """A covariance an IMU message states (3 x 3, row by row), or None where it states none
+    (all zeros: unknown; -1 first: no such data) or one that is not finite."""
+    if covariance[0] <= 0.0 or not math.isfinite(sum(covariance)):
+        return None
+    return np.asarray(covariance, dtype=float).reshape(3, 3)
 
 class FusionNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
@@ -74,6 +82,9 @@ class FusionNode(EstimatorNode):
         self.origin: LocalTangentPlane | None = None
         self._last_odom_t = -math.inf
         self._last_angular_rate = np.zeros(3)
+        # The published rates are single compensated samples: their covariance holds the gyro's
+        # noise (the larger of what the IMU states and what its samples show) and the bias's.
+        self.gyro_noise = SuccessiveDifferenceNoise()
 
         self.pub_odom = self.publisher(Odometry, topics.ODOMETRY)
         self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
@@ -115,6 +126,7 @@ class FusionNode(EstimatorNode):
         f, w = imu
         self._imu_t = t
         self._last_angular_rate = w
+        self.gyro_noise.add(w)
         self.yaw_check.add_imu(t, f, w)
         if not self.ekf.process_imu(t, f, w):
             self.reject("imu:out_of_order")
@@ -130,7 +142,7 @@ class FusionNode(EstimatorNode):
             self.publish_imu(t, msg, f, w)
         if t - self._last_odom_t >= 1.0 / self.odometry_rate - STAMP_TOLERANCE_S:
             self._last_odom_t = t
-            self.publish_odometry(t)
+            self.publish_odometry(t, msg)
         # Right after an in-motion alignment the bias estimate is still rough; with GNSS the
         # heading follows within seconds, and downstream nodes do better on raw samples until
         # then (measured: the paper-004 experiment's slope over its first 20 s). Without GNSS
@@ -197,7 +209,8 @@ class FusionNode(EstimatorNode):
         fc, wc = self.ekf.compensated_imu(f, w)
         # raw may be a message or a ros.cdr view: its stamp and covariances are read, not copied
         values = np.concatenate((self.ekf.quaternion, np.ravel(self.ekf.attitude_covariance), wc,
-                                 raw.angular_velocity_covariance, fc, raw.linear_acceleration_covariance))
+                                 np.ravel(self._angular_rate_covariance(raw)), fc,
+                                 np.ravel(self._specific_force_covariance(raw))))
         self.publish(self.pub_imu, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
 
     def publish_bias(self, raw: Imu) -> None:
@@ -212,7 +225,24 @@ class FusionNode(EstimatorNode):
                                  ekf.accel_bias, np.ravel(ekf.accel_bias_covariance)))
         self.publish(self.pub_bias, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
 
-    def publish_odometry(self, t: float) -> None:
+    def _base_link(self, cov: np.ndarray) -> np.ndarray:
+        Rm = self.ekf.mounting_rotation
+        return Rm @ cov @ Rm.T
+
+    def _angular_rate_covariance(self, raw) -> np.ndarray:
+        """Of one compensated gyro sample, in base_link: its noise and the bias estimate's."""
+        noise = with_floor(_stated(raw.angular_velocity_covariance), self.gyro_noise.variance)
+        return self._base_link(noise + self.ekf.gyro_bias_covariance)
+
+    def _specific_force_covariance(self, raw) -> np.ndarray:
+        """Of one compensated accelerometer sample, in base_link: its stated noise and the bias
+        estimate's; unknown (all zeros, sensor_msgs/Imu) when the IMU states none."""
+        stated = _stated(raw.linear_acceleration_covariance)
+        if stated is None:
+            return np.zeros((3, 3))
+        return self._base_link(stated + self.ekf.accel_bias_covariance)
+
+    def publish_odometry(self, t: float, raw) -> None:
         ekf = self.ekf
         p, v_body, q = ekf.position_enu, ekf.velocity_body, ekf.quaternion
         if not (np.isfinite(p).all() and np.isfinite(v_body).all() and np.isfinite(q).all()):
@@ -226,7 +256,7 @@ class FusionNode(EstimatorNode):
         _, wc = ekf.compensated_imu(np.zeros(3), self._last_angular_rate)
         twist_cov = np.zeros((6, 6))
         twist_cov[:3, :3] = ekf.velocity_body_covariance
-        twist_cov[3:, 3:] = ekf.gyro_bias_covariance
+        twist_cov[3:, 3:] = self._angular_rate_covariance(raw)
         values = np.concatenate((p, q, pose_cov.ravel(), v_body, wc, twist_cov.ravel()))
         self.publish(self.pub_odom, self._odom_layout.pack(sec_to_ns(t), values.tolist()))
         grade_var = float(ekf.road_grade_variance)
@@ -237,6 +267,7 @@ class FusionNode(EstimatorNode):
     def reset_estimators(self) -> None:
         self.ekf.reset()
         self.yaw_check.reset()
+        self.gyro_noise.reset()
         self._last_odom_t = -math.inf
         self._last_bias_t = -math.inf
         self._last_imu_pub_t = -math.inf
