@@ -58,6 +58,7 @@ def _stated(covariance) -> np.ndarray | None:
         return None
     return np.asarray(covariance, dtype=float).reshape(3, 3)
 
+
 class FusionNode(EstimatorNode):
     def __init__(self, **node_kwargs) -> None:
         super().__init__("fusion", **node_kwargs)

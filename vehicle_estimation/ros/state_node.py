@@ -28,10 +28,10 @@ Shared tuning of ``ckf``/``vbackf`` (Sec. 7.1 defaults): ``p0_diag``, ``q_diag``
 Subscribes (sensor-data QoS): ``imu/data`` (measurement [ax, ay, r], the trigger),
 ``vehicle/joint_states`` (steering-wheel angle, four wheel speeds). From other nodes:
 ``estimation/imu_bias`` (fusion IMU bias), ``estimation/imu`` (the fusion attitude that goes
-with the compensated specific force, for ``roll_compensation``), ``estimation/road_slope_stamped`` and
-``estimation/mass_stamped`` (paper 004 Fig. 1: state <- slope, mass). Before the slope or
-mass arrive the filter uses slope 0 and the vehicle's nominal mass, and says so in
-``/diagnostics``.
+with the compensated specific force, for ``roll_compensation``),
+``estimation/road_slope_stamped`` and ``estimation/mass_stamped`` (paper 004 Fig. 1: state <-
+slope, mass). Before the slope or mass arrive the filter uses slope 0 and the vehicle's nominal
+mass, and says so in ``/diagnostics``.
 
 Wheel speeds missing: the inputs carry NaN wheel speeds and the core propagates vx with the
 measured longitudinal acceleration instead of the wheel-slip tyre forces (see
@@ -45,8 +45,9 @@ body-fixed IMU also reads ``g sin(roll) cos(pitch)`` on y whenever the body roll
 suspension or the road is banked (~0.7 m/s^2 at 4 deg of roll). With ``roll_compensation``
 (on by default) it is removed with the fusion's attitude, which integrates the body's roll
 rate (from ``estimation/imu``, not the odometry: the odometry's roll variance also carries the
-mounting roll and the unaided lateral bias, which cancel in the bias-compensated force); before the fusion has aligned the samples pass uncorrected, and ``/diagnostics``
-(``roll compensation``) says which.
+mounting roll and the unaided lateral bias, which cancel in the bias-compensated force); before
+the fusion has aligned the samples pass uncorrected, and ``/diagnostics`` (``roll
+compensation``) says which.
 
 Publishes ``estimation/vehicle_state`` (geometry_msgs/TwistWithCovarianceStamped in
 ``base_link``: linear.x = vx, linear.y = vy, angular.z = yaw rate; covariance rows/cols
