@@ -159,13 +159,23 @@ def imu_rejection(f: np.ndarray, w: np.ndarray) -> str | None:
     return "imu:implausible"
 
 
+def stated_covariance(covariance: Any) -> np.ndarray | None:
+    """A 3 x 3 covariance an IMU message states (row by row), or None where it states none
+    (REP-145: -1 first) or one that is not finite. All zeros, "unknown" to sensor_msgs/Imu,
+    comes back as zeros."""
+    if covariance[0] < 0.0 or not math.isfinite(sum(covariance)):   # a NaN or an inf makes the sum so
+        return None
+    return np.asarray(covariance, dtype=float).reshape(3, 3)
+
+
 def add_stated_imu_covariances(total: np.ndarray, msg: Any) -> None:
     """Add the accelerometer's and the gyro's covariances an IMU message states (imu_link, row
     by row) to ``total[0]`` and ``total[1]``; one that is unknown (REP-145: -1 first) or not
     finite adds nothing."""
     for k, cov in enumerate((msg.linear_acceleration_covariance, msg.angular_velocity_covariance)):
-        if cov[0] >= 0.0 and math.isfinite(sum(cov)):      # a NaN or an inf makes the sum so
-            total[k] += cov
+        stated = stated_covariance(cov)
+        if stated is not None:
+            total[k] += stated.ravel()
 
 
 def base_link_imu_variances(covariances: np.ndarray, mounting: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ from vehicle_estimation.estimators.common.rotations import rotmat_to_quat
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF
 from vehicle_estimation.estimators.fusion.mounting_check import MountingYawCheck
-from vehicle_estimation.ros.conversions import MAX_SPEED, MalformedMessage, chassis_reading
+from vehicle_estimation.ros.conversions import MAX_SPEED, MalformedMessage, chassis_reading, stated_covariance
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.cdr import StampedLayout
@@ -49,14 +49,6 @@ WHEEL_SPEED_FLOOR_STD = 0.05
 SPEED_FROM_CAN, SPEED_FROM_WHEELS = "vehicle/speed", "wheel speeds (no vehicle/speed)"
 FREE_HEADING = ("gnss/fix: no heading from GNSS yet, so free heading: odom = the pose at alignment, "
                 "position dead-reckoned")
-
-
-def _stated(covariance) -> np.ndarray | None:
-    """A covariance an IMU message states (3 x 3, row by row), or None where it states none
-    (all zeros: unknown; -1 first: no such data) or one that is not finite."""
-    if covariance[0] <= 0.0 or not math.isfinite(sum(covariance)):
-        return None
-    return np.asarray(covariance, dtype=float).reshape(3, 3)
 
 
 class FusionNode(EstimatorNode):
@@ -138,12 +130,17 @@ class FusionNode(EstimatorNode):
         self.missing.difference_update([m for m in self.missing if m.startswith("initialisation")])
         # The fallback without GNSS, named in /diagnostics: outputs go on, the pose is relative.
         self.set_missing(FREE_HEADING, not self.ekf.initialized)
-        if t - self._last_imu_pub_t >= 1.0 / self.imu_rate - STAMP_TOLERANCE_S:
-            self._last_imu_pub_t = t
-            self.publish_imu(t, msg, f, w)
-        if t - self._last_odom_t >= 1.0 / self.odometry_rate - STAMP_TOLERANCE_S:
-            self._last_odom_t = t
-            self.publish_odometry(t, msg)
+        imu_due = t - self._last_imu_pub_t >= 1.0 / self.imu_rate - STAMP_TOLERANCE_S
+        odometry_due = t - self._last_odom_t >= 1.0 / self.odometry_rate - STAMP_TOLERANCE_S
+        if imu_due or odometry_due:
+            # both carry this sample's compensated rate: one covariance for the two
+            rate_covariance = self._angular_rate_covariance(msg)
+            if imu_due:
+                self._last_imu_pub_t = t
+                self.publish_imu(t, msg, f, w, rate_covariance)
+            if odometry_due:
+                self._last_odom_t = t
+                self.publish_odometry(t, rate_covariance)
         # Right after an in-motion alignment the bias estimate is still rough; with GNSS the
         # heading follows within seconds, and downstream nodes do better on raw samples until
         # then (measured: the paper-004 experiment's slope over its first 20 s). Without GNSS
@@ -206,11 +203,11 @@ class FusionNode(EstimatorNode):
             self.reject("joint_states:speed_rejected_by_filter")
 
     # -------------------------------------------------------------- outputs
-    def publish_imu(self, t: float, raw: Imu, f: np.ndarray, w: np.ndarray) -> None:
+    def publish_imu(self, t: float, raw: Imu, f: np.ndarray, w: np.ndarray, rate_covariance: np.ndarray) -> None:
         fc, wc = self.ekf.compensated_imu(f, w)
         # raw may be a message or a ros.cdr view: its stamp and covariances are read, not copied
         values = np.concatenate((self.ekf.quaternion, np.ravel(self.ekf.attitude_covariance), wc,
-                                 np.ravel(self._angular_rate_covariance(raw)), fc,
+                                 np.ravel(rate_covariance), fc,
                                  np.ravel(self._specific_force_covariance(raw))))
         self.publish(self.pub_imu, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
 
@@ -232,18 +229,18 @@ class FusionNode(EstimatorNode):
 
     def _angular_rate_covariance(self, raw) -> np.ndarray:
         """Of one compensated gyro sample, in base_link: its noise and the bias estimate's."""
-        noise = with_floor(_stated(raw.angular_velocity_covariance), self.gyro_noise.variance)
+        noise = with_floor(stated_covariance(raw.angular_velocity_covariance), self.gyro_noise.variance)
         return self._base_link(noise + self.ekf.gyro_bias_covariance)
 
     def _specific_force_covariance(self, raw) -> np.ndarray:
         """Of one compensated accelerometer sample, in base_link: its stated noise and the bias
         estimate's; unknown (all zeros, sensor_msgs/Imu) when the IMU states none."""
-        stated = _stated(raw.linear_acceleration_covariance)
-        if stated is None:
+        stated = stated_covariance(raw.linear_acceleration_covariance)
+        if stated is None or not stated.any():
             return np.zeros((3, 3))
         return self._base_link(stated + self.ekf.accel_bias_covariance)
 
-    def publish_odometry(self, t: float, raw) -> None:
+    def publish_odometry(self, t: float, rate_covariance: np.ndarray) -> None:
         ekf = self.ekf
         p, v_body, q = ekf.position_enu, ekf.velocity_body, ekf.quaternion
         if not (np.isfinite(p).all() and np.isfinite(v_body).all() and np.isfinite(q).all()):
@@ -257,7 +254,7 @@ class FusionNode(EstimatorNode):
         _, wc = ekf.compensated_imu(np.zeros(3), self._last_angular_rate)
         twist_cov = np.zeros((6, 6))
         twist_cov[:3, :3] = ekf.velocity_body_covariance
-        twist_cov[3:, 3:] = self._angular_rate_covariance(raw)
+        twist_cov[3:, 3:] = rate_covariance
         values = np.concatenate((p, q, pose_cov.ravel(), v_body, wc, twist_cov.ravel()))
         self.publish(self.pub_odom, self._odom_layout.pack(sec_to_ns(t), values.tolist()))
         grade_var = float(ekf.road_grade_variance)
