@@ -712,6 +712,37 @@ def _pull_away(top_speed, seconds=20.0, pitch=math.radians(0.5), yaw_rate=0.0, n
     return ekf
 
 
+def _heading_information(ekf) -> float:
+    """N^T P^-1 N for the direction no sensor but GNSS sees, a rotation of the whole solution
+    about the vertical: (dp, dv, eps) = (S(e_z) p, S(e_z) v, -e_z) at the estimate."""
+    from vehicle_estimation.estimators.fusion.error_state import IA, IP, IV, N_ERR
+    n = np.zeros(N_ERR)
+    n[IP:IP + 3] = np.cross([0.0, 0.0, 1.0], ekf._p)
+    n[IV:IV + 3] = np.cross([0.0, 0.0, 1.0], ekf._v)
+    n[IA + 2] = -1.0
+    return float(n @ np.linalg.solve(ekf._P, n))
+
+
+@pytest.mark.parametrize("hold", [False, True], ids=["yaw-rate bias estimated", "yaw-rate bias held"])
+def test_without_gnss_an_update_does_not_inform_the_heading(hold):
+    """Without GNSS a speed update, blind to the heading at the estimate it is made at, leaves
+    the information about the heading as it was when P moves with the estimate
+    (``invariant_reset_without_gnss``); the ES-EKF's P, left where the update moved the
+    velocity, gains some with every update (a turning car pulling away)."""
+    gains = {}
+    for invariant in (False, True):
+        ekf = _pull_away(5.0, seconds=15.0, yaw_rate=0.05, invariant_reset_without_gnss=invariant,
+                         hold_yaw_rate_bias_without_gnss=hold)
+        before = _heading_information(ekf)
+        assert ekf.update_speed(ekf.time + 0.001, 5.2)
+        gains[invariant] = _heading_information(ekf) / before - 1.0
+    assert gains[False] > 1e-5
+    if hold:     # a Schmidt update is not the optimal one: it may only lose information
+        assert -1e-5 < gains[True] <= 1e-12
+    else:
+        assert abs(gains[True]) < 1e-12
+
+
 def test_without_gnss_a_crawl_does_not_move_the_mounting():
     """Below ``mounting_min_speed_without_gnss`` the constraints carry no mounting columns: a
     crawl leaves the mounting where the alignment put it (its errors go to the attitude, which

@@ -162,12 +162,12 @@ def test_vb_failure_paths_end_as_the_numpy_path():
 
 
 # ---- the fusion ES-EKF --------------------------------------------------------------------
-def _fusion_run(compiled_on: bool, drive) -> tuple[FusionEKF, np.ndarray]:
-    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1))
+def _fusion_run(compiled_on: bool, drive, gnss: bool = True, **cfg) -> tuple[FusionEKF, np.ndarray]:
+    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1, **cfg))
     ekf.compiled = compiled_on
     events = [(float(t), 0, i) for i, t in enumerate(drive.imu_t)]
     events += [(float(t), 1, i) for i, t in enumerate(drive.speed_t)]
-    events += [(float(t), 2, i) for i, t in enumerate(drive.gnss["t"])]
+    events += [(float(t), 2, i) for i, t in enumerate(drive.gnss["t"]) if gnss]
     rows = []
     for t, kind, i in sorted(events):
         if kind == 0:
@@ -180,21 +180,25 @@ def _fusion_run(compiled_on: bool, drive) -> tuple[FusionEKF, np.ndarray]:
     return ekf, np.array(rows)
 
 
-def test_fusion_compiled_gives_the_numpy_estimates():
+@pytest.mark.parametrize("gnss", [True, False], ids=["GNSS", "no GNSS, invariant reset"])
+def test_fusion_compiled_gives_the_numpy_estimates(gnss):
     from vehicle_estimation.evaluation.bench_cores import DriveArrays
     drive = DriveArrays(40.0, seed=3)
-    numpy_ekf, a = _fusion_run(False, drive)
-    compiled_ekf, b = _fusion_run(True, drive)
-    assert compiled_ekf.status == numpy_ekf.status == "running"
+    # Without GNSS the compiled step reads the corner gate (the low-passed yaw rate) before the
+    # sample's propagation, the numpy path after it: one sample apart where a corner starts.
+    cfg = {} if gnss else {"invariant_reset_without_gnss": True, "mounting_max_yaw_rate_without_gnss": 10.0}
+    numpy_ekf, a = _fusion_run(False, drive, gnss, **cfg)
+    compiled_ekf, b = _fusion_run(True, drive, gnss, **cfg)
+    assert compiled_ekf.status == numpy_ekf.status == ("running" if gnss else "waiting_for_heading")
     scale = np.maximum(np.max(np.abs(a), axis=0), 1e-9)
     assert float(np.max(np.abs(a - b) / scale)) < 1e-9
     assert compiled_ekf.rejected == numpy_ekf.rejected and compiled_ekf.events == numpy_ekf.events
 
 
-def _running_ekf(seed: int) -> FusionEKF:
-    """A filter in a random running state (every kernel input non-trivial)."""
+def _running_ekf(seed: int, **cfg) -> FusionEKF:
+    """A filter in a random running state (every kernel input non-trivial; no GNSS fix)."""
     rng = np.random.default_rng(seed)
-    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1))
+    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1, **cfg))
     ekf.status = "running"
     ekf._t = 100.0
     ekf._p, ekf._v = rng.normal(size=3) * 50.0, rng.normal(size=3) * 10.0
@@ -211,8 +215,9 @@ def _running_ekf(seed: int) -> FusionEKF:
     return ekf
 
 
-def test_each_fusion_kernel_agrees_to_1e12():
-    pairs = [_running_ekf(1), _running_ekf(1)]
+@pytest.mark.parametrize("invariant", [False, True], ids=["ES-EKF", "invariant reset"])
+def test_each_fusion_kernel_agrees_to_1e12(invariant):
+    pairs = [_running_ekf(1, invariant_reset_without_gnss=invariant) for _ in range(2)]
     pairs[0].compiled, pairs[1].compiled = False, True
     for ekf in pairs:
         ekf._propagate(0.005)

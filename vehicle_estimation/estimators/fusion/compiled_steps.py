@@ -47,12 +47,13 @@ class FusionCompiledSteps:
     # FusionEKF's methods these steps share with its numpy path:
     _update_process_noise: Callable[[float], None]
     _held_direction: Callable[[], np.ndarray]
+    _invariant_reset_due: Callable[[], bool]
     _mounting_min_speeds: Callable[[], tuple[float, float]]
     _moving_constraint_noise: Callable[[], np.ndarray]
 
     def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
-        """``_update`` (Eqs. (37)-(44)) by :func:`.ins_kernels.joseph_update` and
-        :func:`.ins_kernels.inject`."""
+        """``_update`` (Eqs. (37)-(44)) by :func:`.ins_kernels.joseph_update`,
+        :func:`.ins_kernels.inject` and :func:`.ins_kernels.invariant_reset`."""
         c = self.config
         P, dz = np.empty((N_ERR, N_ERR)), np.empty(N_ERR)
         res = ins_kernels.joseph_update(self._P, H, W, y, 0.0 if gate is None else float(gate), gate is not None,
@@ -65,6 +66,8 @@ class FusionCompiledSteps:
         self._P = P
         q, R, Rm = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
         ins_kernels.inject(dz, self._p, self._v, self._q, self._ba, self._bg, self._Rm, c.estimate_mounting, q, R, Rm)
+        if self._invariant_reset_due():
+            ins_kernels.invariant_reset(self._P, dz)
         self._q, self._R = q, R
         if c.estimate_mounting:
             self._Rm = Rm
@@ -76,7 +79,8 @@ class FusionCompiledSteps:
         q, R, Rm, P = np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((N_ERR, N_ERR))
         res = ins_kernels.constraint_update(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64), W,
                                             c.full_velocity_jacobian, *self._mounting_min_speeds(),
-                                            c.estimate_mounting, self._held_direction(), self._p, self._ba, self._bg,
+                                            c.estimate_mounting, self._held_direction(), self._invariant_reset_due(),
+                                            self._p, self._ba, self._bg,
                                             self._q, self._P, q, R, Rm, P)
         self._take_constraint_outcome(res, q, R, Rm, P)
 
@@ -92,7 +96,8 @@ class FusionCompiledSteps:
         res = ins_kernels.imu_step(dt, c.stationary_imu_tau_s, self._f_prev, self._w_prev, self._ba, self._bg,
                                    self._g_vec, self._p, self._v, self._q, self._R, self._a_lp, self._w_lp, self._P,
                                    self._qd, _MOVING_ROWS, self._moving_constraint_noise(), c.full_velocity_jacobian,
-                                   *self._mounting_min_speeds(), c.estimate_mounting, self._held_direction(), self._Rm,
+                                   *self._mounting_min_speeds(), c.estimate_mounting, self._held_direction(),
+                                   self._invariant_reset_due(), self._Rm,
                                    q, R, Rm, P)
         self._q, self._R, self._P = q, R, P      # the propagation, at least
         self._take_constraint_outcome(res, q, R, Rm, P)

@@ -59,6 +59,12 @@ class FusionConfig:
     kept, Joseph form), corrected by GNSS. The bias held is the one about base_link z (the
     IMU's own z on a level IMU; another of its axes, or a mix, on a turned one).
 
+    Nor does anything observe a rotation of the whole solution about the vertical, but the ES-EKF
+    learns one: each body-velocity update is blind to it at the velocity it is made at, while P
+    stays where the update moved the velocity. ``invariant_reset_without_gnss`` moves P with the
+    estimate (:func:`.error_state.invariant_reset`), as an invariant EKF's error would, while no
+    fix aids; with GNSS the fixes observe the heading and nothing changes.
+
     The IMU mounting (``estimate_mounting``) enters the body-velocity constraints as the
     velocity times its angle. Without GNSS it is refined there only from
     ``mounting_min_speed_without_gnss`` up, and its pitch only while the yaw rate stays below
@@ -172,6 +178,10 @@ class FusionConfig:
                                               "misplaces when p0 holds the prior [m/s^2]", low=0.0)
     hold_yaw_rate_bias_without_gnss: bool = setting(True, "Hold the yaw-rate gyro bias (about base_link z) "
                                                     "while no GNSS fix aids (a consider state)")
+    invariant_reset_without_gnss: bool = setting(False, "While no GNSS fix aids, move the velocity's and the "
+                                                 "position's covariance with the estimate at each update (errors "
+                                                 "about the attitude's estimate), so that no update informs the "
+                                                 "heading, which nothing observes")
     mounting_min_speed_without_gnss: float = setting(1.0, "Without GNSS the vehicle constraints refine the "
                                                      "mounting only from this speed up [m/s]", low=0.0)
     mounting_max_yaw_rate_without_gnss: float = setting(

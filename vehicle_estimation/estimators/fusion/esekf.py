@@ -68,7 +68,7 @@ from vehicle_estimation.estimators.common.rotations import (quat_from_euler, qua
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IM, IP, IV, N_ERR, STATUS_ALIGNING,
                                                               STATUS_RUNNING, STATUS_WAIT_HEADING,
-                                                              STATUS_WAIT_STANDSTILL)
+                                                              STATUS_WAIT_STANDSTILL, invariant_reset)
 from vehicle_estimation.estimators.fusion import ins_kernels
 from vehicle_estimation.estimators.fusion.compiled_steps import FusionCompiledSteps
 from vehicle_estimation.estimators.fusion.initialisation import FusionInitialisation
@@ -440,6 +440,10 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         held = self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided
         return self._yaw_bias_direction if held else self._no_hold
 
+    def _invariant_reset_due(self) -> bool:
+        """Whether an update moves P with the estimate (:func:`.error_state.invariant_reset`)."""
+        return self.config.invariant_reset_without_gnss and not self.gnss_aided
+
     def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
         """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form).
 
@@ -467,7 +471,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             return -1
         A = self._eye15 - K @ H
         P = A @ P @ A.T + K @ W @ K.T                     # Eq. (44), Joseph form
-        self._P = 0.5 * (P + P.T)
+        self._P = invariant_reset(P, dz) if self._invariant_reset_due() else 0.5 * (P + P.T)
         self._inject(dz)
         return 1
 

@@ -2,8 +2,8 @@
 
 :func:`propagate` is ``FusionEKF._propagate`` (paper 003 Eqs. (22)-(29), (33)-(36)),
 :func:`body_speed_rows` is ``_body_speed_rows`` (Eq. (46)), :func:`joseph_update` the gain and
-Joseph-form covariance of ``_update`` (Eqs. (37)-(40), (44)) and :func:`inject` is ``_inject``
-(Eqs. (41)-(43)). The numpy methods are the definition and the test oracle
+Joseph-form covariance of ``_update`` (Eqs. (37)-(40), (44)), :func:`inject` is ``_inject``
+(Eqs. (41)-(43)) and :func:`invariant_reset` is ``error_state.invariant_reset``. The numpy methods are the definition and the test oracle
 (``test_model_kernels``): the same numbers to 1e-12.
 
 One difference on purpose: the innovation covariance is inverted through its Cholesky factor,
@@ -21,7 +21,7 @@ from vehicle_estimation.estimators.common.compiled import kernel
 from vehicle_estimation.estimators.common.small_linalg import cholesky_lower, cholesky_solve_rows, times_transpose
 
 __all__ = ["UPDATE_APPLIED", "UPDATE_GATED", "UPDATE_FAILED", "body_speed_rows", "constraint_update", "imu_step",
-           "inject", "joseph_update",
+           "inject", "invariant_reset", "joseph_update",
            "propagate", "warm_up"]
 
 UPDATE_APPLIED, UPDATE_GATED, UPDATE_FAILED = 1, 0, -1
@@ -258,14 +258,42 @@ def inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out):
 
 
 @kernel
-def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting, hold, p, ba,
-                      bg, q, P, q_out, R_out, Rm_out, P_out):
+def invariant_reset(P, dz):
+    """``P <- G P G^T`` in place, ``G = I + S(dv)`` at (v, eps) and ``S(dp)`` at (p, eps): the
+    covariance follows the estimate's move ``dz`` (``error_state.invariant_reset``)."""
+    n = P.shape[0]
+    D = np.zeros((6, 3))                     # rows p, v of G - I, in the attitude's columns
+    for b, base in ((0, _IP), (3, _IV)):
+        x, y, z = dz[base], dz[base + 1], dz[base + 2]
+        D[b, 1], D[b, 2] = -z, y
+        D[b + 1, 0], D[b + 1, 2] = z, -x
+        D[b + 2, 0], D[b + 2, 1] = -y, x
+    M = P.copy()                              # G P: rows p, v gain D P[eps, :]
+    for r in range(6):
+        for j in range(n):
+            M[r, j] += D[r, 0] * P[_IA, j] + D[r, 1] * P[_IA + 1, j] + D[r, 2] * P[_IA + 2, j]
+    for i in range(n):                        # (G P) G^T: columns p, v gain (G P)[:, eps] D^T
+        for r in range(6):
+            P[i, r] = M[i, r] + M[i, _IA] * D[r, 0] + M[i, _IA + 1] * D[r, 1] + M[i, _IA + 2] * D[r, 2]
+        for j in range(6, n):
+            P[i, j] = M[i, j]
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = s
+            P[j, i] = s
+
+
+@kernel
+def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting, hold, invariant,
+                      p, ba, bg, q, P, q_out, R_out, Rm_out, P_out):
     """The non-holonomic / standstill update (Eqs. (45)-(47), rows (3)) in one call: the body
     velocity ``rows`` should be zero, with noise ``W``: :func:`body_speed_rows` (with
     ``mounting``, the mounting pitch's column from a speed of ``pitch_min_speed`` up, the yaw's
     from ``yaw_min_speed``; infinite: none), then
-    :func:`joseph_update` (no gate) and :func:`inject`. Returns the update's outcome; unless
-    ``UPDATE_APPLIED``, nothing is written."""
+    :func:`joseph_update` (no gate), :func:`inject` and, with ``invariant``,
+    :func:`invariant_reset`. Returns the update's outcome; unless ``UPDATE_APPLIED``, nothing is
+    written."""
     k, n = rows.shape[0], P.shape[0]
     pred, H, dz = np.empty(k), np.empty((k, n)), np.empty(n)
     speed_sq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
@@ -274,12 +302,14 @@ def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min
     outcome = joseph_update(P, H, W, -pred, 0.0, False, hold, P_out, dz)
     if outcome == UPDATE_APPLIED:
         inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out)
+        if invariant:
+            invariant_reset(P_out, dz)
     return outcome
 
 
 @kernel
 def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, rows, W, full_jacobian,
-             pitch_min_speed, yaw_min_speed, mounting, hold, Rm, q_out, R_out, Rm_out, P_out):
+             pitch_min_speed, yaw_min_speed, mounting, hold, invariant, Rm, q_out, R_out, Rm_out, P_out):
     """:func:`propagate`, then :func:`constraint_update` at the propagated state: one IMU sample
     of a moving vehicle. The outputs hold the propagation where the update is not applied
     (its outcome is returned)."""
@@ -287,7 +317,7 @@ def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, 
     q1, R1, P1 = np.empty(4), np.empty((3, 3)), np.empty((n, n))
     propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, q1, R1, P1)
     outcome = constraint_update(R1, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting,
-                                hold, p, ba, bg, q1, P1, q_out, R_out, Rm_out, P_out)
+                                hold, invariant, p, ba, bg, q1, P1, q_out, R_out, Rm_out, P_out)
     if outcome != UPDATE_APPLIED:
         q_out[:] = q1
         R_out[:, :] = R1
@@ -313,10 +343,11 @@ def warm_up(n: int = 17) -> None:
     dz = np.zeros(n)
     joseph_update(P, H, np.eye(2), np.zeros(2), 1.0, True, np.zeros(n), np.empty((n, n)), dz)
     inject(dz, v3.copy(), v3.copy(), q, v3.copy(), v3.copy(), R, True, np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
+    invariant_reset(np.eye(n), dz)
     constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros(n),
-                      v3.copy(), v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)),
+                      True, v3.copy(), v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)),
                       np.empty((n, n)))
     imu_step(0.01, 1.0, v3, v3, v3.copy(), v3.copy(), v3, v3.copy(), v3.copy(), q, R, v3.copy(), v3.copy(), P,
-             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros(n), R,
+             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros(n), True, R,
              np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
     _warm = True
