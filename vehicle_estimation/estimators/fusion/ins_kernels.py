@@ -3,8 +3,9 @@
 :func:`propagate` is ``FusionEKF._propagate`` (paper 003 Eqs. (22)-(29), (33)-(36)),
 :func:`body_speed_rows` is ``_body_speed_rows`` (Eq. (46)), :func:`joseph_update` the gain and
 Joseph-form covariance of ``_update`` (Eqs. (37)-(40), (44)), :func:`inject` is ``_inject``
-(Eqs. (41)-(43)) and :func:`invariant_reset` is ``error_state.invariant_reset``. The numpy methods are the definition and the test oracle
-(``test_model_kernels``): the same numbers to 1e-12.
+(Eqs. (41)-(43)) and :func:`invariant_reset` is ``error_state.invariant_reset``. The numpy
+methods are the definition and the test oracle (``test_model_kernels``): the same numbers to
+1e-12.
 
 One difference on purpose: the innovation covariance is inverted through its Cholesky factor,
 so an ``S`` that is not positive definite is a numerical failure here, where the numpy path
@@ -262,7 +263,9 @@ def invariant_reset(P, dz):
     """``P <- G P G^T`` in place, ``G = I + S(dv)`` at (v, eps) and ``S(dp)`` at (p, eps): the
     covariance follows the estimate's move ``dz`` (``error_state.invariant_reset``)."""
     n = P.shape[0]
-    D = np.zeros((6, 3))                     # rows p, v of G - I, in the attitude's columns
+    # G - I: nonzero in the rows of p and v (the error state's first six entries, _IP = 0 and
+    # _IV = 3) and the attitude's columns.
+    D = np.zeros((6, 3))
     for b, base in ((0, _IP), (3, _IV)):
         x, y, z = dz[base], dz[base + 1], dz[base + 2]
         D[b, 1], D[b, 2] = -z, y
