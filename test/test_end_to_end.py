@@ -85,6 +85,7 @@ def test_replaying_again_gives_identical_estimates(replays):
                 "/estimation/mass_stamped", "/estimation/road_slope_stamped"}
     assert expected <= set(whole), sorted(whole)
     assert whole.keys() == prefix.keys()
+    assert len(whole["/estimation/datum"]) == 1 and whole.pop("/estimation/datum") == prefix.pop("/estimation/datum")
     for topic in whole:
         # The prefix's last tick may end while the whole drive's messages are still in flight
         # downstream: leave out its final second of outputs (at most 50 at 50 Hz).
@@ -112,7 +113,8 @@ def test_the_fusion_rates_carry_the_gyro_noise(replays):
     gyro samples: their covariance holds the gyro's noise as well as the bias estimate's (with
     the bias's alone, 12 % of the yaw-rate errors lay within 2 sigma on the demo, NEES 318)."""
     from vehicle_estimation.contract import topics as T
-    from vehicle_estimation.evaluation.report import consistency_group, read_bag
+    from vehicle_estimation.evaluation.consistency import consistency_group
+    from vehicle_estimation.evaluation.report import read_bag
 
     out, _ = replays[0]
     checked, _ = consistency_group(read_bag(out, [T.ODOMETRY, T.GT_ODOMETRY]), 5.0)
@@ -131,6 +133,27 @@ def test_the_fusion_rates_carry_the_gyro_noise(replays):
     assert len(both) > 1000
     np.testing.assert_allclose([v["/estimation/imu"] for v in both], [v["/estimation/odometry"] for v in both],
                                rtol=1e-12)
+
+
+def test_the_datum_says_where_odom_is_and_the_pose_variance_is_honest(drive, replays):
+    """``estimation/datum`` is the first fix, sent once (transient local) when GNSS has fixed the
+    heading; with it the report puts the truth in ``odom`` and the published position, heading
+    and IMU-bias variances hold their errors (before the datum the report compared the pose in
+    the truth's own frame and read the first fix's error, 3.4 m on the demo, as the filter's)."""
+    from vehicle_estimation.contract import topics as T
+    from vehicle_estimation.evaluation.consistency import POSE_AND_BIAS_TOPICS, consistency_group
+    from vehicle_estimation.evaluation.report import read_bag
+
+    out, _ = replays[0]
+    data = read_bag(out, [T.ODOMETRY, T.GT_ODOMETRY, *POSE_AND_BIAS_TOPICS])
+    first_fix = read_bag(drive, [T.GNSS])[T.GNSS]
+    datum = data[T.DATUM]
+    assert datum["t"].size == 1 and datum["t"][0] > data[T.ODOMETRY]["t"][0]      # after the heading fit
+    assert (datum["lat"][0], datum["lon"][0], datum["alt"][0]) == \
+        (first_fix["lat"][0], first_fix["lon"][0], first_fix["alt"][0])
+    checked, _ = consistency_group(data, 5.0)
+    for name in ("fusion_xy", "fusion_yaw", "accel_bias", "gyro_bias"):
+        assert checked[name]["within_2sigma"] >= 0.85 and 0.05 < checked[name]["nees"] < 2.0, (name, checked[name])
 
 
 def test_estimates_match_the_recorded_reference(replays):

@@ -11,6 +11,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from vehicle_estimation.evaluation import report  # noqa: E402
+from vehicle_estimation.estimators.common.geodesy import LocalTangentPlane  # noqa: E402
+from vehicle_estimation.evaluation.consistency import format_consistency, truth_in_odom  # noqa: E402
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 Float64 = TS.types["std_msgs/msg/Float64"]
@@ -53,6 +55,16 @@ def _odom(ns, x, y, vx, vy):
                                   covariance=np.zeros(36)))
 
 
+ORIGIN = (55.78, 12.52, 50.0)
+
+
+def _fix(ns, lat, lon, alt):
+    fix = TS.types["sensor_msgs/msg/NavSatFix"]
+    status = TS.types["sensor_msgs/msg/NavSatStatus"](status=0, service=1)
+    return fix(header=_header(ns), status=status, latitude=float(lat), longitude=float(lon), altitude=float(alt),
+               position_covariance=np.zeros(9), position_covariance_type=0)
+
+
 @pytest.fixture()
 def bag(tmp_path):
     path = tmp_path / "drive"
@@ -65,6 +77,7 @@ def bag(tmp_path):
             ("/estimation/vehicle_state", "geometry_msgs/msg/TwistWithCovarianceStamped"),
             ("/ground_truth/vehicle_state", "geometry_msgs/msg/TwistWithCovarianceStamped"),
             ("/estimation/odometry", "nav_msgs/msg/Odometry"), ("/ground_truth/odometry", "nav_msgs/msg/Odometry"),
+            ("/estimation/datum", "sensor_msgs/msg/NavSatFix"), ("/ground_truth/datum", "sensor_msgs/msg/NavSatFix"),
         ]:
             conns[topic] = (writer.add_connection(topic, msgtype, typestore=TS), msgtype)
 
@@ -73,6 +86,10 @@ def bag(tmp_path):
             writer.write(conn, ns, bytes(TS.serialize_cdr(msg, msgtype)))
 
         write("/ground_truth/mass", T0, Float64(data=1600.0))          # latched once
+        # odom's origin (the first fix) lies 2 m north of the truth's: the truth is at y = -2 there
+        north = LocalTangentPlane(*ORIGIN).to_geodetic(np.array([0.0, 2.0, 0.0]))
+        write("/ground_truth/datum", T0, _fix(T0, *ORIGIN))
+        write("/estimation/datum", T0, _fix(T0, *north))
         for k in range(N):
             ns = T0 + k * 100_000_000
             t = k * 0.1
@@ -85,7 +102,7 @@ def bag(tmp_path):
             write("/ground_truth/vehicle_state", ns + 50_000_000, _twist(ns, 10.0, 0.2, 0.1))
             write("/estimation/vehicle_state", ns + 50_000_000, _twist(ns, 10.5, 0.2, 0.1))
             write("/ground_truth/odometry", ns, _odom(ns, 10.0 * t, 0.0, 10.0, 0.0))
-            write("/estimation/odometry", ns, _odom(ns, 10.0 * t, 3.0, 6.0, 8.0))
+            write("/estimation/odometry", ns, _odom(ns, 10.0 * t, 1.0, 6.0, 8.0))
     return path
 
 
@@ -129,7 +146,8 @@ def test_report_numbers_and_figures(bag, tmp_path):
 
     fu = g["fusion"]
     assert fu["speed"]["rmse"] == pytest.approx(0.0)          # |(6, 8)| = 10
-    assert fu["position"]["horizontal_rmse"] == pytest.approx(3.0)
+    assert fu["position"]["horizontal_rmse"] == pytest.approx(3.0)   # 1 m north of y = -2
+    assert fu["position"]["frame"] == "ENU about estimation/datum"
 
     assert sorted(res["figures"]) == ["fusion.png", "mass.png", "slope.png", "vehicle_state.png"]
     for name in res["figures"]:
@@ -207,7 +225,7 @@ def test_consistency_group_checks_each_published_variance():
     assert c["slope"]["converged_share"] == pytest.approx(200 / 350)
     assert c["vx"]["nees"] == pytest.approx(4.0)                   # 0.5 m/s error, sigma 0.25
     assert c["vx"]["within_1sigma"] == pytest.approx(0.0)
-    text = "\n".join(report.format_consistency({k: v for k, v in c.items() if isinstance(v, dict)}))
+    text = "\n".join(format_consistency({k: v for k, v in c.items() if isinstance(v, dict)}))
     assert "slope" in text and "NEES" in text
 
 
@@ -226,3 +244,55 @@ def test_the_tilt_variances_are_about_the_heading_and_its_left(yaw_deg):
     values = _extract("nav_msgs/msg/Odometry", msg)
     assert values["var_pitch"] == pytest.approx(math.sin(yaw) ** 2 * 1e-4 + math.cos(yaw) ** 2 * 9e-4)
     assert values["var_roll"] == pytest.approx(math.cos(yaw) ** 2 * 1e-4 + math.sin(yaw) ** 2 * 9e-4)
+
+
+def test_without_a_datum_the_truth_is_put_where_the_estimate_started():
+    """No estimation/datum (no GNSS): odom is the pose at alignment with a free heading, so the
+    truth is turned and moved onto the first estimate; with both datums it is moved by the
+    difference of the origins only, from the datum's stamp on."""
+    t = np.arange(0.0, 10.0, 0.1)
+    # the car drives east at 10 m/s from (100, 50); odom's free frame has it driving along +y
+    truth = {"t": t, "x": 100.0 + 10.0 * t, "y": np.full(t.size, 50.0), "yaw": np.zeros(t.size)}
+    est = {"t": t, "x": np.zeros(t.size), "y": 10.0 * t, "yaw": np.full(t.size, math.pi / 2)}
+    aligned = truth_in_odom({"estimation/odometry": est, "ground_truth/odometry": truth})
+    assert aligned["frame"].startswith("free")
+    np.testing.assert_allclose(aligned["x"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(aligned["y"], 10.0 * t, atol=1e-9)
+    np.testing.assert_allclose(aligned["yaw"], math.pi / 2)
+
+    north = LocalTangentPlane(*ORIGIN).to_geodetic(np.array([3.0, -4.0, 0.0]))
+    datums = {"estimation/datum": {"t": np.array([2.0]), "lat": np.array([north[0]]), "lon": np.array([north[1]]),
+                                   "alt": np.array([north[2]])},
+              "ground_truth/datum": {"t": np.array([0.0]), **{k: np.array([v]) for k, v in
+                                                              zip(("lat", "lon", "alt"), ORIGIN)}}}
+    aligned = truth_in_odom({"estimation/odometry": est, "ground_truth/odometry": truth, **datums})
+    assert aligned["t"][0] == pytest.approx(2.0)                # the frame is ENU from the datum on
+    np.testing.assert_allclose(aligned["x"], 97.0 + 10.0 * aligned["t"], atol=1e-6)
+    np.testing.assert_allclose(aligned["y"], 54.0, atol=1e-6)
+    np.testing.assert_allclose(aligned["yaw"], 0.0)
+
+
+def test_the_position_heading_and_biases_are_checked_against_their_own_sigma():
+    from vehicle_estimation.evaluation.consistency import consistency_group
+
+    t = np.arange(0.0, 20.0, 0.1)
+    n = t.size
+    truth = {"t": t, "x": 10.0 * t, "y": np.zeros(n), "yaw": np.full(n, 0.1)}
+    # x 0.5 m off at sigma 0.5 (NEES 1), y exact: pooled NEES 0.5; heading 0.02 rad off at sigma 0.01
+    est = {"t": t, "x": 10.0 * t + 0.5, "y": np.zeros(n), "yaw": np.full(n, 0.12), "var_x": np.full(n, 0.25),
+           "var_y": np.full(n, 0.25), "var_yaw": np.full(n, 1e-4)}
+    bias_truth = {"t": t, **{f"a{a}": np.full(n, 0.05) for a in "xyz"}, **{f"g{a}": np.full(n, 0.002) for a in "xyz"}}
+    bias = {"t": t, **{f"a{a}": np.full(n, 0.05) for a in "xy"}, "az": np.full(n, 0.08),
+            **{f"g{a}": np.full(n, 0.002) for a in "xyz"},
+            **{f"var_a{a}": np.full(n, 1e-4) for a in "xyz"}, **{f"var_g{a}": np.full(n, 1e-8) for a in "xyz"}}
+    datum = {"t": np.array([0.0]), **{k: np.array([v]) for k, v in zip(("lat", "lon", "alt"), ORIGIN)}}
+    checked, series = consistency_group({"estimation/odometry": est, "ground_truth/odometry": truth,
+                                         "estimation/datum": datum, "ground_truth/datum": datum,
+                                         "estimation/imu_bias": bias, "ground_truth/imu_bias": bias_truth}, 5.0)
+    assert set(checked) == {"fusion_xy", "fusion_yaw", "accel_bias", "gyro_bias"}
+    assert checked["fusion_xy"]["nees"] == pytest.approx(0.5) and checked["fusion_xy"]["n"] == 2 * (n - 50)
+    assert checked["fusion_yaw"]["nees"] == pytest.approx(4.0)
+    assert checked["accel_bias"]["nees"] == pytest.approx(3.0)        # z: 0.03 off at sigma 0.01
+    assert checked["accel_bias"]["within_2sigma"] == pytest.approx(2 / 3)
+    assert checked["gyro_bias"]["nees"] == pytest.approx(0.0)
+    assert series["accel_bias"]["error"].shape == (n - 50, 3)

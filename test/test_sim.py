@@ -181,6 +181,7 @@ def test_bag_round_trip(tmp_path, short_result):
         T.POWERTRAIN: "sensor_msgs/msg/JointState", T.GT_MASS: "std_msgs/msg/Float64",
         T.GT_ROAD_SLOPE: "std_msgs/msg/Float64", T.GT_SIDESLIP: "std_msgs/msg/Float64",
         T.GT_VEHICLE_STATE: "geometry_msgs/msg/TwistWithCovarianceStamped", T.GT_ODOMETRY: "nav_msgs/msg/Odometry",
+        T.GT_DATUM: "sensor_msgs/msg/NavSatFix", T.GT_IMU_BIAS: "sensor_msgs/msg/Imu",
     }
     ts = get_typestore(Stores.ROS2_JAZZY)
     with AnyReader([Path(path)], default_typestore=ts) as reader:
@@ -215,6 +216,14 @@ def test_bag_round_trip(tmp_path, short_result):
     od = first[T.GT_ODOMETRY][1]
     assert od.header.frame_id == T.ODOM_FRAME and od.child_frame_id == T.BASE_FRAME
     assert first[T.GT_MASS][1].data == SEDAN.mass
+    # the truth's frame in WGS84 and the IMU's own biases, for the report's consistency checks
+    datum = first[T.GT_DATUM][1]
+    assert (datum.latitude, datum.longitude, datum.altitude) == (res.scenario.origin_lat, res.scenario.origin_lon,
+                                                                 res.scenario.origin_alt)
+    bias = first[T.GT_IMU_BIAS][1]
+    np.testing.assert_allclose([bias.linear_acceleration.x, bias.angular_velocity.z],
+                               [res.sensors["imu"]["accel_bias"][0, 0], res.sensors["imu"]["gyro_bias"][0, 2]])
+    assert counts[T.GT_IMU_BIAS] == 14 * 10 + 1 and counts[T.GT_DATUM] == 1
 
 
 def test_vectorised_serialisation_matches_rosbags(short_result):

@@ -139,7 +139,8 @@ def test_without_gnss_the_fusion_roll_stays_honest_through_a_double_lane_change(
     vehicle file says): the check is of the filter's own roll variance, not of the prior on top."""
     from rosharness import replay_side_by_side
 
-    from vehicle_estimation.evaluation.report import consistency_group, read_bag
+    from vehicle_estimation.evaluation.consistency import consistency_group
+    from vehicle_estimation.evaluation.report import read_bag
     from vehicle_estimation.paths import params_file
     from vehicle_estimation.validation.validate import _without_gnss_and_wheels
 

@@ -166,7 +166,7 @@ def test_generate_writes_the_three_variants_and_the_vehicle_file(tmp_path):
     assert [p.name for p in paths] == list(fd.VARIANTS)
     assert (tmp_path / f"{fd.VEHICLE_NAME}.yaml").read_text(encoding="utf-8") == PARAMS_FILE.read_text(encoding="utf-8")
     inputs = {T.IMU, T.GNSS, T.SPEED, T.JOINT_STATES, T.POWERTRAIN}
-    truth = {T.GT_MASS, T.GT_ROAD_SLOPE, T.GT_VEHICLE_STATE, T.GT_ODOMETRY, T.GT_SIDESLIP}
+    truth = {T.GT_MASS, T.GT_ROAD_SLOPE, T.GT_VEHICLE_STATE, T.GT_ODOMETRY, T.GT_SIDESLIP, T.GT_DATUM, T.GT_IMU_BIAS}
     counts = {}
     for path, (gnss, wheels) in zip(paths, fd.VARIANTS.values()):
         with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:

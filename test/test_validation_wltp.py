@@ -155,7 +155,7 @@ def test_generate_writes_both_drives_without_wheels_and_the_vehicle_file(tmp_pat
     paths = wd.generate(tmp_path, duration=BAG_DURATION, seed=1)
     assert [p.name for p in paths] == [d + s for d in wd.DRIVES for s in wd.VARIANTS]
     assert (tmp_path / f"{wd.VEHICLE_NAME}.yaml").read_text(encoding="utf-8") == wd.params_yaml()
-    truth = {T.GT_MASS, T.GT_ROAD_SLOPE, T.GT_VEHICLE_STATE, T.GT_ODOMETRY, T.GT_SIDESLIP}
+    truth = {T.GT_MASS, T.GT_ROAD_SLOPE, T.GT_VEHICLE_STATE, T.GT_ODOMETRY, T.GT_SIDESLIP, T.GT_DATUM, T.GT_IMU_BIAS}
     masses = {}
     for path in paths:
         with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:

@@ -30,6 +30,7 @@ VEHICLE_STATE = "estimation/vehicle_state"    # geometry_msgs/TwistWithCovarianc
 SIDESLIP = "estimation/sideslip"              # std_msgs/Float64 [rad]
 SIDESLIP_STAMPED = "estimation/sideslip_stamped"  # geometry_msgs/Vector3Stamped
 FUSION_GRADE = "estimation/fusion/road_grade"  # geometry_msgs/Vector3Stamped, pitch-derived grade
+DATUM = "estimation/datum"                    # sensor_msgs/NavSatFix: WGS84 origin of odom once it is ENU (latched)
 MASS = "estimation/mass"                      # std_msgs/Float64 [kg]
 MASS_STAMPED = "estimation/mass_stamped"      # geometry_msgs/Vector3Stamped: x value, y variance, z converged
 DIAGNOSTICS = "/diagnostics"                  # diagnostic_msgs/DiagnosticArray
@@ -40,8 +41,10 @@ GT_ROAD_SLOPE = "ground_truth/road_slope"     # std_msgs/Float64 [rad]
 GT_SIDESLIP = "ground_truth/sideslip"         # std_msgs/Float64 [rad]
 GT_VEHICLE_STATE = "ground_truth/vehicle_state"  # geometry_msgs/TwistWithCovarianceStamped
 GT_ODOMETRY = "ground_truth/odometry"         # nav_msgs/Odometry
+GT_DATUM = "ground_truth/datum"               # sensor_msgs/NavSatFix: WGS84 origin of the truth's odometry frame
+GT_IMU_BIAS = "ground_truth/imu_bias"         # sensor_msgs/Imu: the IMU's biases, as estimation/imu_bias
 
-GROUND_TRUTH_TOPICS = (GT_MASS, GT_ROAD_SLOPE, GT_SIDESLIP, GT_VEHICLE_STATE, GT_ODOMETRY)
+GROUND_TRUTH_TOPICS = (GT_MASS, GT_ROAD_SLOPE, GT_SIDESLIP, GT_VEHICLE_STATE, GT_ODOMETRY, GT_DATUM, GT_IMU_BIAS)
 
 # Joint names
 WHEEL_JOINTS = ("wheel_fl", "wheel_fr", "wheel_rl", "wheel_rr")

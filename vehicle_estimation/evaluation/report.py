@@ -30,6 +30,13 @@ import numpy as np
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.common.rotations import euler_from_quat
 from vehicle_estimation.evaluation import metrics
+from vehicle_estimation.evaluation.consistency import (
+    POSE_AND_BIAS_TOPICS,
+    consistency_group,
+    format_consistency,
+    plot_consistency,
+    truth_in_odom,
+)
 
 DEFAULT_WARMUP_S = 5.0
 CV_WINDOW_S = 5.0          # length of the trailing c_v window of the mass CR (Eq. 40 of paper 000)
@@ -69,7 +76,16 @@ def _extract(msgtype: str, msg: Any) -> dict[str, float] | None:
                 "roll": float(roll), "pitch": float(pitch), "yaw": float(yaw), "yaw_rate": tw.angular.z,
                 # REP-103 6x6 row-major: twist (vx, ...) and pose (x, y, z, then rotations)
                 "var_vx": float(msg.twist.covariance[0]), "var_yaw_rate": float(msg.twist.covariance[35]),
-                "var_roll": var_roll, "var_pitch": var_pitch}
+                "var_roll": var_roll, "var_pitch": var_pitch, "var_x": float(msg.pose.covariance[0]),
+                "var_y": float(msg.pose.covariance[7]), "var_yaw": float(msg.pose.covariance[35])}
+    if msgtype == "sensor_msgs/msg/NavSatFix":
+        return {"lat": float(msg.latitude), "lon": float(msg.longitude), "alt": float(msg.altitude)}
+    if msgtype == "sensor_msgs/msg/Imu":        # estimation/imu_bias and its truth: biases, variances
+        a, g = msg.linear_acceleration, msg.angular_velocity
+        ca, cg = msg.linear_acceleration_covariance, msg.angular_velocity_covariance
+        return {"ax": a.x, "ay": a.y, "az": a.z, "gx": g.x, "gy": g.y, "gz": g.z,
+                "var_ax": float(ca[0]), "var_ay": float(ca[4]), "var_az": float(ca[8]),
+                "var_gx": float(cg[0]), "var_gy": float(cg[4]), "var_gz": float(cg[8])}
     return None
 
 
@@ -85,10 +101,12 @@ def _tilt_variances(pose_covariance, yaw: float) -> tuple[float, float]:
 
 
 def _match_topic(available: Sequence[str], relative: str) -> str | None:
-    """The bag topic for a relative name: '/name' first, else a unique '/ns/.../name'."""
+    """The bag topic for a relative name: '/name' or 'name' first, else a unique '/ns/.../name'."""
     exact = "/" + relative.lstrip("/")
     if exact in available:
         return exact
+    if exact[1:] in available:          # rosbags writes a topic as it is given: ours unrooted
+        return exact[1:]
     suffix = [name for name in sorted(available) if name.endswith(exact)]
     return suffix[0] if len(suffix) == 1 else None
 
@@ -254,14 +272,14 @@ def _fusion_group(data, warmup_s):
     pair = _pair(data, "estimation/odometry", topics.GT_ODOMETRY, "speed", "speed")
     if pair is None:
         return None, None
-    t, e, tr, _ = pair
+    t, e, tr, t0 = pair
     res["speed"] = _quantity(t, e, tr, warmup_s, unit="m/s")
     plots["speed"] = {"t": t, "est": e, "true": tr}
-    px = _pair(data, "estimation/odometry", topics.GT_ODOMETRY, "x", "x")
-    py = _pair(data, "estimation/odometry", topics.GT_ODOMETRY, "y", "y")
-    if px is not None and py is not None and px[0].size == py[0].size:
-        t, ex, tx, _ = px
-        _, ey, ty, _ = py
+    aligned = truth_in_odom(data)
+    if aligned is not None and np.isfinite(aligned["x"]).all():
+        est, i = data["estimation/odometry"], aligned["index"]
+        t = aligned["t"] - t0
+        ex, ey, tx, ty = est["x"][i], est["y"][i], aligned["x"], aligned["y"]
         dist = np.hypot(ex - tx, ey - ty)
         t_w, d_w = _after(t, dist, start=t[0] + warmup_s)
         res["position"] = {
@@ -270,6 +288,7 @@ def _fusion_group(data, warmup_s):
             "horizontal_rmse": float(np.sqrt(np.mean(d_w ** 2))) if d_w.size else math.nan,
             "horizontal_max": float(np.max(d_w)) if d_w.size else math.nan,
             "final_horizontal_error": float(dist[-1]),
+            "frame": aligned["frame"],
         }
         plots["position"] = {"t": t, "ex": ex, "ey": ey, "tx": tx, "ty": ty, "err": dist}
     pp = _pair(data, "estimation/odometry", topics.GT_ODOMETRY, "pitch", "pitch")
@@ -373,83 +392,14 @@ def _plot_fusion(plots, out: Path) -> str:
     return _save(fig, out / "fusion.png")
 
 
-#: Estimates whose variance is checked against the truth: (name, estimate topic, key, variance
-#: key, flag key or None, truth topic, truth key, truth interpolation, unit, display scale).
-CONSISTENCY_SPEC = (
-    ("mass", "estimation/mass", "value", "variance", "converged", topics.GT_MASS, "value", "previous", "kg", 1.0),
-    ("slope", "estimation/road_slope", "value", "variance", "converged", topics.GT_ROAD_SLOPE, "value",
-     "linear", "deg", 180.0 / math.pi),
-    ("sideslip", "estimation/sideslip", "value", "variance", "converged", topics.GT_SIDESLIP, "value",
-     "linear", "deg", 180.0 / math.pi),
-    ("vx", "estimation/vehicle_state", "vx", "var_vx", None, topics.GT_VEHICLE_STATE, "vx", "linear", "m/s", 1.0),
-    ("vy", "estimation/vehicle_state", "vy", "var_vy", None, topics.GT_VEHICLE_STATE, "vy", "linear", "m/s", 1.0),
-    ("yaw_rate", "estimation/vehicle_state", "yaw_rate", "var_yaw_rate", None, topics.GT_VEHICLE_STATE,
-     "yaw_rate", "linear", "deg/s", 180.0 / math.pi),
-    ("fusion_vx", "estimation/odometry", "vx", "var_vx", None, topics.GT_ODOMETRY, "vx", "linear", "m/s", 1.0),
-    ("fusion_pitch", "estimation/odometry", "pitch", "var_pitch", None, topics.GT_ODOMETRY, "pitch", "linear",
-     "deg", 180.0 / math.pi),
-    ("fusion_roll", "estimation/odometry", "roll", "var_roll", None, topics.GT_ODOMETRY, "roll", "linear",
-     "deg", 180.0 / math.pi),
-    ("fusion_yaw_rate", "estimation/odometry", "yaw_rate", "var_yaw_rate", None, topics.GT_ODOMETRY, "yaw_rate",
-     "linear", "deg/s", 180.0 / math.pi),
-)
-
-
-def consistency_series(data: dict[str, Series], warmup_s: float) -> dict[str, dict[str, np.ndarray]]:
-    """Per checked estimate: stamps, error, variance and flag on the estimate stamps after the
-    warm-up (the mass over the last half, as every mass figure)."""
-    out: dict[str, dict[str, np.ndarray]] = {}
-    for name, topic, key, var_key, flag_key, truth_topic, truth_key, mode, unit, scale in CONSISTENCY_SPEC:
-        est, true = data.get(topic), data.get(truth_topic)
-        if est is None or true is None or var_key not in est:
-            continue
-        if not np.any(np.isfinite(est[var_key]) & (est[var_key] > 0.0)):
-            continue            # no variance published (a zero covariance): nothing to check
-        # align() on the sample index keeps each estimate's own variance and flag with it
-        t, idx, truth = metrics.align(est["t"], np.arange(est["t"].size, dtype=float), true["t"], true[truth_key],
-                                      mode=mode, hold_last=mode == "previous")
-        if t.size == 0:
-            continue
-        i = idx.astype(int)
-        start = t[0] + (0.5 * (t[-1] - t[0]) if name == "mass" else warmup_s)
-        sel = t >= start
-        out[name] = {"t": t[sel], "error": (est[key][i] - truth)[sel], "variance": est[var_key][i][sel],
-                     "converged": est[flag_key][i][sel] if flag_key and flag_key in est else None,
-                     "unit": unit, "scale": scale}
-    return out
-
-
-def consistency_group(data, warmup_s):
-    """metrics.consistency of each checked estimate (``{name: metrics}`` or None) and the series."""
-    series = consistency_series(data, warmup_s)
-    res = {name: metrics.consistency(s["error"], s["variance"], s["converged"]) for name, s in series.items()}
-    return (res or None), (series or None)
-
-
 def _plot_consistency(series, out: Path) -> str:
-    plt = _plt()
-    fig, axes = plt.subplots(len(series), 1, figsize=(10, 2.2 * len(series)), sharex=True, squeeze=False)
-    for ax, (name, s) in zip(axes[:, 0], series.items()):
-        k = s["scale"]
-        sigma2 = 2.0 * np.sqrt(np.maximum(s["variance"], 0.0)) * k
-        ax.fill_between(s["t"], -sigma2, sigma2, color="tab:blue", alpha=0.2, label="±2σ published")
-        ax.plot(s["t"], s["error"] * k, color="tab:red", lw=0.8, label="error")
-        if s["converged"] is not None:
-            flagged = s["converged"] > 0.5
-            ax.plot(s["t"][~flagged], np.zeros(int((~flagged).sum())), ".", color="grey", ms=1,
-                    label="not converged")
-        ax.set_ylabel(f"{name} [{s['unit']}]")
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc="upper right", fontsize=7)
-    axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle("Error against the published ±2σ")
-    return _save(fig, out / "consistency.png")
+    return _save(plot_consistency(series, out, _plt()), out / "consistency.png")
 
 
 # --------------------------------------------------------------------- report
 WANTED = ("estimation/mass", topics.GT_MASS, "estimation/road_slope", topics.GT_ROAD_SLOPE,
           "estimation/vehicle_state", topics.GT_VEHICLE_STATE, "estimation/sideslip",
-          topics.GT_SIDESLIP, "estimation/odometry", topics.GT_ODOMETRY)
+          topics.GT_SIDESLIP, "estimation/odometry", topics.GT_ODOMETRY) + POSE_AND_BIAS_TOPICS
 
 
 GROUP_BUILDERS: dict[str, Callable] = {
@@ -538,32 +488,6 @@ def format_table(report: dict) -> str:
         lines.append("")
         lines.extend(format_consistency({k: v for k, v in consistency.items() if isinstance(v, dict)}))
     return "\n".join(lines)
-
-
-def format_share(x: Any) -> str:
-    """A share 0-1 as a whole percentage; n/a for None or NaN."""
-    return "n/a" if x is None or not math.isfinite(x) else f"{100.0 * x:.0f} %"
-
-
-def format_consistency(rows: dict[str, dict]) -> list[str]:
-    """Shares of the errors within 1/2/3 sigma of the published variance (Gaussian: 68/95/99.7 %)
-    and NEES (honest: 1), over every sample and over those flagged converged."""
-    head = (f"{'consistency':<16}{'n':>7}{'1σ':>7}{'2σ':>7}{'3σ':>7}{'NEES':>9}"
-            f"{'conv.':>8}{'conv. 2σ':>10}{'conv. >3σ':>11}{'conv. NEES':>12}")
-    lines = [head, "-" * len(head)]
-    for name, c in rows.items():
-        def num(key, spec=".3g"):
-            v = c.get(key)
-            return "n/a" if v is None or not math.isfinite(v) else format(v, spec)
-        share = {key: format_share(c.get(key)) for key in (
-            "within_1sigma", "within_2sigma", "within_3sigma", "converged_share", "converged_within_2sigma",
-            "converged_beyond_3sigma")}
-        lines.append(f"{name:<16}{c.get('n', 0):>7}{share['within_1sigma']:>7}{share['within_2sigma']:>7}"
-                     f"{share['within_3sigma']:>7}{num('nees'):>9}{share['converged_share']:>8}"
-                     f"{share['converged_within_2sigma']:>10}{share['converged_beyond_3sigma']:>11}"
-                     f"{num('converged_nees'):>12}")
-    lines.append("honest: 68 / 95 / 99.7 % within 1/2/3σ, NEES 1; NEES above 1: the variance is too small")
-    return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -69,7 +69,7 @@ def ensemble_rows(result: dict) -> list[dict]:
 
 def format_ensembles(rows: list[dict]) -> str:
     """The table of :func:`ensemble_rows`."""
-    from vehicle_estimation.evaluation.report import format_share as pct
+    from vehicle_estimation.evaluation.consistency import format_share as pct
 
     lines = ["Over the noise draws of one drive (a lasting error is one draw per drive):", "",
              "| drive | estimate | drives | MAE over the drives, RMS (max) | within 2σ | NEES, mean (range) |",
@@ -88,7 +88,7 @@ def format_ensembles(rows: list[dict]) -> str:
 def format_consistency(rows: list[dict]) -> str:
     """Honesty of the published variances: errors within 1/2/3 sigma, NEES, and the same over
     the samples flagged converged."""
-    from vehicle_estimation.evaluation.report import format_share as pct
+    from vehicle_estimation.evaluation.consistency import format_share as pct
 
     def num(x):
         return "n/a" if x is None or not math.isfinite(x) else f"{x:.2f}"

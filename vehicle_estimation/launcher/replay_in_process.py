@@ -86,7 +86,10 @@ class InProcessReplay:
                         # rclpy's serializer leaves the CDR alignment padding as it finds it in
                         # memory, where a DDS writer zeroes it: the same values, other bytes.
                         # Written again by rosbags, the padding is zero as in the DDS recording.
+                        # A DDS writer also pads the payload to a multiple of 4 bytes (a message
+                        # that ends in a uint8, as NavSatFix does), which rosbags does not.
                         data = bytes(typestore.serialize_cdr(typestore.deserialize_cdr(data, type_name), type_name))
+                        data += bytes(-len(data) % 4)
                     self.writer.write(connection, self.bus.now_ns, data)
 
             self.bus.create_recording(name, write)

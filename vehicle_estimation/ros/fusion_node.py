@@ -10,10 +10,13 @@ covariance with what no sensor separates from it: the mounting roll, an unaided 
 ``estimation/imu`` (bias-compensated IMU with the estimated orientation and the filter's own
 covariance of it, the attitude its specific force goes with; at ``imu_rate_hz``) and
 ``estimation/fusion/road_grade`` (pitch-derived grade, stamped companion: x = grade [rad,
-+uphill], y = variance, z = converged).
++uphill], y = variance, z = converged) and ``estimation/datum`` (latched).
 
 The ENU origin of ``odom`` is the first valid GNSS fix; fixes with ``status.status < 0`` are
-ignored and counted. Without GNSS (a car that has none, or before the first fixes show the
+ignored and counted. Once the GNSS track has fixed the heading, ``odom`` is ENU about that
+origin, and ``estimation/datum`` (sensor_msgs/NavSatFix, transient local, stamped then) gives
+it in WGS84: what a consumer needs to put the pose on a map, and the report to compare it
+with a truth given in another frame. Without GNSS (a car that has none, or before the first fixes show the
 heading) every output is still published once the filter has aligned: ``odom`` is then the
 pose at alignment with a free heading, the position is dead-reckoned and its covariance grows,
 and ``/diagnostics`` says so (``heading source``, ``position source`` and a ``missing`` entry).
@@ -83,6 +86,9 @@ class FusionNode(EstimatorNode):
         self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
         self.pub_grade = self.publisher(Vector3Stamped, FUSION_GRADE)
         self.pub_bias = self.publisher(Imu, topics.IMU_BIAS)
+        self.pub_datum = self.publisher(NavSatFix, topics.DATUM, latched=True)
+        self._origin_fix: NavSatFix | None = None      # a copy: a subscription may reuse its message
+        self._datum_published = False
         self._imu_layout = StampedLayout(self.base_frame, 37)
         self._odom_layout = StampedLayout(self.odom_frame, 85, child_frame_id=self.base_frame)
         self.bias_rate = self.declare_float(
@@ -160,6 +166,11 @@ class FusionNode(EstimatorNode):
             return
         if self.origin is None:
             self.origin = LocalTangentPlane(msg.latitude, msg.longitude, msg.altitude)
+            self._origin_fix = NavSatFix(
+                status=NavSatStatus(status=int(msg.status.status), service=int(msg.status.service)),
+                latitude=msg.latitude, longitude=msg.longitude, altitude=msg.altitude,
+                position_covariance=[float(c) for c in msg.position_covariance],
+                position_covariance_type=int(msg.position_covariance_type))
             self.note_event(f"ENU origin set at {msg.latitude:.7f}, {msg.longitude:.7f}, "
                             f"{msg.altitude:.2f} m")
         enu = np.asarray(self.origin.to_enu(msg.latitude, msg.longitude, msg.altitude), dtype=float)
@@ -211,6 +222,16 @@ class FusionNode(EstimatorNode):
                                  np.ravel(self._specific_force_covariance(raw))))
         self.publish(self.pub_imu, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
 
+    def publish_datum(self, t: float) -> None:
+        """odom's origin in WGS84, from this pose on ENU about it (before: the free frame)."""
+        msg = self._origin_fix
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(sec_to_ns(t), 1_000_000_000)
+        msg.header.frame_id = self.odom_frame
+        self.publish(self.pub_datum, msg)
+        self._datum_published = True
+        self.note_event(f"odom is ENU about {msg.latitude:.9f}, {msg.longitude:.9f}, {msg.altitude:.3f} m "
+                        "(estimation/datum)")
+
     def publish_bias(self, raw: Imu) -> None:
         """The IMU bias estimate in sensor_msgs/Imu form (see ros.runtime.upstream.FusionImuBias)."""
         ekf = self.ekf
@@ -256,6 +277,8 @@ class FusionNode(EstimatorNode):
         twist_cov[:3, :3] = ekf.velocity_body_covariance
         twist_cov[3:, 3:] = rate_covariance
         values = np.concatenate((p, q, pose_cov.ravel(), v_body, wc, twist_cov.ravel()))
+        if ekf.initialized and not self._datum_published and self._origin_fix is not None:
+            self.publish_datum(t)
         self.publish(self.pub_odom, self._odom_layout.pack(sec_to_ns(t), values.tolist()))
         grade_var = float(ekf.road_grade_variance)
         self.publish(self.pub_grade, companion_bytes(t, float(ekf.road_grade), grade_var,
@@ -264,6 +287,7 @@ class FusionNode(EstimatorNode):
     # -------------------------------------------------------------- bookkeeping
     def reset_estimators(self) -> None:
         self.ekf.reset()
+        self._datum_published = False       # the heading is free again until GNSS fixes it
         self.yaw_check.reset()
         self.gyro_noise.reset()
         self._last_odom_t = -math.inf

@@ -248,6 +248,35 @@ def build_streams(result, t0_ns: int = T0_NS) -> list[tuple[str, str, np.ndarray
             "qx": qx, "qy": qy, "qz": qz, "qw": qw,
             "lx": TR["vx"], "ly": TR["vy"], "wx": TR["wx"], "wy": TR["wy"], "wz": TR["wz"]}
     streams.append((T.GT_ODOMETRY, tpl["odom"].msgtype, ns, tpl["odom"].fill(n, vals)))
+    streams += _truth_frames(tpl, S, ns[:1], t0_ns)
+    return streams
+
+
+def _truth_frames(tpl, S, first_ns: np.ndarray, t0_ns: int) -> list:
+    """``ground_truth/datum`` (the WGS84 point of the truth's odometry origin, once, at the first
+    truth stamp) where the GNSS fixes say about which origin they were made, and
+    ``ground_truth/imu_bias`` (the IMU's biases in its own axes, as ``estimation/imu_bias``,
+    at 10 Hz of the IMU's stamps) where the IMU says which biases it carries."""
+    streams = []
+    origin = S["gnss"].get("origin")
+    if origin is not None:
+        sec, nsec = first_ns // 1_000_000_000, first_ns % 1_000_000_000
+        vals = {"sec": sec, "nsec": nsec, "status": 0, "service": 1,
+                "lat": origin[0], "lon": origin[1], "alt": origin[2], "pcovtype": 0}
+        streams.append((T.GT_DATUM, tpl["gnss"].msgtype, first_ns, tpl["gnss"].fill(1, vals)))
+    imu = S["imu"]
+    accel_bias = imu.get("accel_bias", imu.get("bias_accel"))
+    gyro_bias = imu.get("gyro_bias", imu.get("bias_gyro"))
+    if accel_bias is not None and gyro_bias is not None:
+        t = np.asarray(imu["t"])
+        step = max(1, int(round(0.1 / float(np.median(np.diff(t)))))) if t.size > 1 else 1
+        k = np.arange(0, t.size, step)
+        ba = np.broadcast_to(np.asarray(accel_bias, dtype=float), (t.size, 3))[k]
+        bg = np.broadcast_to(np.asarray(gyro_bias, dtype=float), (t.size, 3))[k]
+        ns, sec, nsec = _stamps(t[k], t0_ns)
+        vals = {"sec": sec, "nsec": nsec, "ocov0": -1.0,
+                "wx": bg[:, 0], "wy": bg[:, 1], "wz": bg[:, 2], "ax": ba[:, 0], "ay": ba[:, 1], "az": ba[:, 2]}
+        streams.append((T.GT_IMU_BIAS, tpl["imu"].msgtype, ns, tpl["imu"].fill(ns.size, vals)))
     return streams
 
 

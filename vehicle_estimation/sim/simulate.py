@@ -242,7 +242,8 @@ def make_sensors(scn: Scenario, cfg: SensorConfig, truth: dict, kin: dict, seeds
     lon = np.where(status < 0, np.nan, lon)
     alt = np.where(status < 0, np.nan, alt)
     sensors["gnss"] = {"t": tg[keep], "lat": lat[keep], "lon": lon[keep], "alt": alt[keep],
-                       "status": status[keep], "cov": sig ** 2, "enu_true": pos[keep], "enu_meas": pos_m[keep]}
+                       "status": status[keep], "cov": sig ** 2, "enu_true": pos[keep], "enu_meas": pos_m[keep],
+                       "origin": (scn.origin_lat, scn.origin_lon, scn.origin_alt)}
 
     # ---------------- CAN / OBD-II (zero-order hold of the 100 Hz signals)
     q = cfg.speed_quantum_kmh

@@ -359,7 +359,7 @@ def sensor_result(tr: Trajectory, *, vibration_std: float = 0.0, seed: int = 0, 
     lat, lon, alt = ltp.to_geodetic(enu)
     gnss = {"t": t[k], "lat": np.asarray(lat), "lon": np.asarray(lon), "alt": np.asarray(alt),
             "status": np.zeros(k.size, dtype=np.int64),
-            "cov": np.array([GNSS_NOISE_H ** 2, GNSS_NOISE_H ** 2, GNSS_NOISE_V ** 2])}
+            "cov": np.array([GNSS_NOISE_H ** 2, GNSS_NOISE_H ** 2, GNSS_NOISE_V ** 2]), "origin": ORIGIN}
 
     # powertrain: none (dropped from the bag); build_streams wants the entry
     one = np.array([0.0])

@@ -139,7 +139,7 @@ def gnss_samples(rng: np.random.Generator, truth: dict, idx: np.ndarray, *, orig
     lat, lon, alt = LocalTangentPlane(*origin).to_geodetic(enu)
     return {"t": truth["t"][idx], "lat": np.asarray(lat), "lon": np.asarray(lon), "alt": np.asarray(alt),
             "status": np.zeros(idx.size, dtype=np.int64),
-            "cov": np.array([noise_h ** 2, noise_h ** 2, noise_v ** 2])}
+            "cov": np.array([noise_h ** 2, noise_h ** 2, noise_v ** 2]), "origin": tuple(origin)}
 
 
 def truth_samples(truth: dict, idx: np.ndarray) -> dict:

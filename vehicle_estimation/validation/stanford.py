@@ -196,7 +196,7 @@ def _consistency(data: dict, warmup_s: float) -> dict[str, dict[str, float]]:
     """Errors against the published sigma (share within 1/2/3 sigma, NEES, and over the samples
     flagged converged) of each :data:`CHECKED` estimate in ``data`` (:func:`_read_recording`),
     after the warm-up, as ``report`` does."""
-    from vehicle_estimation.evaluation.report import consistency_group
+    from vehicle_estimation.evaluation.consistency import consistency_group
     checks, _ = consistency_group(data, warmup_s)
     return {name: values for name, values in (checks or {}).items() if name in CHECKED}
 

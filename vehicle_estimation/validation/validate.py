@@ -300,13 +300,14 @@ def _row(case: Case, quantity: str, unit: str, estimator: str, baseline: str,
 
 def _read_estimates(bag: Path) -> dict:
     from vehicle_estimation.evaluation.report import read_bag
+    from vehicle_estimation.evaluation.consistency import POSE_AND_BIAS_TOPICS
     return read_bag(bag, [T.VEHICLE_STATE, T.SIDESLIP, T.ROAD_SLOPE, T.MASS, T.ODOMETRY, T.GT_MASS,
-                          T.GT_ROAD_SLOPE, T.GT_SIDESLIP, T.GT_VEHICLE_STATE, T.GT_ODOMETRY])
+                          T.GT_ROAD_SLOPE, T.GT_SIDESLIP, T.GT_VEHICLE_STATE, T.GT_ODOMETRY, *POSE_AND_BIAS_TOPICS])
 
 
 def consistency_rows(case: Case, est: dict) -> list[dict]:
     """Per estimate with a variance: its errors against its own sigma (evaluation.metrics.consistency)."""
-    from vehicle_estimation.evaluation.report import consistency_group
+    from vehicle_estimation.evaluation.consistency import consistency_group
 
     checked, _ = consistency_group(est, WARMUP_S)
     return [{"case": case.name, "independent": case.independent, "quantity": quantity, **values}

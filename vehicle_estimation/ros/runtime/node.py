@@ -29,7 +29,7 @@ from vehicle_estimation.ros.runtime.diagnostics import NodeHealth
 from vehicle_estimation.ros.runtime.in_process import InProcessBus
 from vehicle_estimation.ros.runtime.input_queue import StampOrderedInputs
 from vehicle_estimation.ros.runtime.parameters import ParameterDeclarations
-from vehicle_estimation.ros.runtime.qos import output_qos, sensor_qos
+from vehicle_estimation.ros.runtime.qos import latched_qos, output_qos, sensor_qos
 from vehicle_estimation.ros.stamps import stamp_ns
 from vehicle_estimation.ros.runtime.sync import ReplaySyncResponder, TickRelease
 from vehicle_estimation.ros.runtime.upstream import FusionImuBias, UpstreamHistory
@@ -88,11 +88,12 @@ class EstimatorNode(ParameterDeclarations, Node):
                 time_jump_reset_s=self.time_jump_reset_s)
 
     # ------------------------------------------------------------------ topics
-    def publisher(self, msg_type: Any, topic: str) -> Any:
+    def publisher(self, msg_type: Any, topic: str, *, latched: bool = False) -> Any:
+        qos = latched_qos() if latched else output_qos(self.output_depth)
         if self.transport is not None:
-            pub = self.transport.create_publisher(msg_type, self.resolve_topic_name(topic), output_qos(self.output_depth))
+            pub = self.transport.create_publisher(msg_type, self.resolve_topic_name(topic), qos)
         else:
-            pub = self.create_publisher(msg_type, topic, output_qos(self.output_depth))
+            pub = self.create_publisher(msg_type, topic, qos)
         self._publishers_by_topic[pub.topic_name] = pub
         return pub
 

@@ -30,6 +30,17 @@ def output_qos(depth: int) -> QoSProfile:
     )
 
 
+def latched_qos() -> QoSProfile:
+    """A value set once (the datum): reliable, transient local, so that a late subscriber
+    (a controller started after the first fix) still gets it."""
+    return QoSProfile(
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=1,
+    )
+
+
 def replay_qos() -> QoSProfile:
     """The player's sync requests and the nodes' acks: none may be lost."""
     return QoSProfile(
