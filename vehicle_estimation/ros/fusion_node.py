@@ -63,9 +63,11 @@ class FusionNode(EstimatorNode):
         timeout = self.declare_shared_setting(FusionConfig, "gnss_aiding_timeout_s")
         # The IMU's nominal mounting is the vehicle's (every node turns the IMU by it), not fusion.*.
         self.vehicle = self.declare_vehicle()
+        # One gravity for every node: the vehicle file's (local g; a simulator's own constant).
         config = self.declare_config("fusion", FusionConfig(gnss_aiding_timeout_s=timeout,
-                                                            mounting_rpy=self.vehicle.imu_mounting_rpy),
-                                     exclude=("gnss_aiding_timeout_s", "mounting_rpy"))
+                                                            mounting_rpy=self.vehicle.imu_mounting_rpy,
+                                                            gravity=self.vehicle.gravity),
+                                     exclude=("gnss_aiding_timeout_s", "mounting_rpy", "gravity"))
         self.config = config
         self.odometry_rate = self.declare_float(
             "odometry_rate_hz", 50.0, "Rate of estimation/odometry and the grade [Hz]", 0.1, 1000.0)
