@@ -687,6 +687,7 @@ def test_mass_node_ffrls_uses_braking_samples():
     ("fusion_node", "vehicle.imu_mounting_rpy:=[0.0, 5.0, 0.0]", "imu_mounting_rpy"),
     ("slope_node", "vehicle.imu_mounting_rpy:=[0.0, 0.0]", "imu_mounting_rpy"),
     ("fusion_node", "fusion.mounting_rpy:=[0.0, 0.0, 1.5]", "'fusion.mounting_rpy' (now 'vehicle.imu_mounting_rpy')"),
+    ("fusion_node", "fusion.gravity:=9.81", "'fusion.gravity' (now 'vehicle.gravity')"),
 ])
 def test_bad_parameter_stops_node_naming_it(module, override, name):
     proc = subprocess.run(

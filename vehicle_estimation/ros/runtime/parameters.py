@@ -33,7 +33,7 @@ class ParameterError(ValueError):
 SHARED_PARAMETERS = ("use_sim_time", "start_type_description_service", "gnss_aiding_timeout_s")
 SHARED_PREFIXES = ("vehicle.", "qos_overrides.")
 #: Parameters that moved: a params file that still gives the old name is told the new one.
-MOVED_PARAMETERS = {"fusion.mounting_rpy": "vehicle.imu_mounting_rpy",
+MOVED_PARAMETERS = {"fusion.mounting_rpy": "vehicle.imu_mounting_rpy", "fusion.gravity": "vehicle.gravity",
                     "auto.uncompensated_accel_bias_std": "cubic_prediction.uncompensated_accel_bias_std"}
 
 
