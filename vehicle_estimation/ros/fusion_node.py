@@ -324,11 +324,9 @@ class FusionNode(EstimatorNode):
                 # Without GNSS the bias and the grade are one unobservable sum (FusionConfig).
                 "accel bias estimation": (
                     "GNSS-aided" if ekf.gnss_aided
-                    else "held through a GNSS outage (horizontal; the vertical part from the "
-                         "vertical constraint)" if ekf.accel_bias_observed
-                    else "held at its prior (no GNSS yet) on the horizontal axes: the grade is "
-                         "kinematic, its variance carries the prior; the vertical part from the "
-                         "vertical constraint"),
+                    else "held through a GNSS outage" if ekf.accel_bias_observed
+                    else "held at its prior (no GNSS yet): the grade is kinematic, its variance "
+                         "carries the prior"),
                 "gyro bias [rad/s]": np.array2string(ekf.gyro_bias, precision=6),
                 "IMU mounting rpy [deg]": np.array2string(np.degrees(ekf.mounting_rpy), precision=3),
             })

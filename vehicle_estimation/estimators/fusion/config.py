@@ -40,11 +40,12 @@ class FusionConfig:
     ``g tilt + bias``: one direction of the error state is unobservable. The paper's bias
     random walk then lets the split wander with whatever the model gets wrong (on FASTSim's
     hilly drive the x bias reached +2 m/s^2 and the grade -10 deg in 600 s; the true bias is
-    0.05). So the accelerometer bias's horizontal part is held while no valid fix has come for
+    0.05). So the accelerometer bias is held while no valid fix has come for
     ``gnss_aiding_timeout_s``, and every correction of the sum goes into the tilt, which the
-    gyro carries between corrections. Its vertical part (along base_link z) keeps its walk: the
-    vertical constraint observes it apart from the tilt, and held, P settles on a bias that
-    drifts or that takes up a gravity the filter has wrong. A bias that no fix has ever observed is only known to
+    gyro carries between corrections. Its vertical part the vertical constraint observes, but
+    letting it walk there costs the pitch what the constraint told it (FASTSim's truck without
+    GNSS: slope 0.10 -> 0.59 deg), so it is held too, and the unaided term below covers it in
+    the published bias covariance. A bias that no fix has ever observed is only known to
     its prior; ``unaided_accel_bias_sigma`` enters the grade variance, and the published bias
     covariance, as a 'consider' term on top of P. With Table 2's p0 (0.005) it is the typical
     turn-on bias of a MEMS accelerometer (0.05), which P does not hold. Where P starts at that
@@ -171,8 +172,8 @@ class FusionConfig:
     q_mounting_sigma: float = setting(1e-7, "Mounting random walk per sample [rad]: a mounting does not move",
                                       low=0.0)
     # --- without GNSS (not in the paper, which always has it; see the class docstring) ---
-    accel_bias_walk_without_gnss: bool = setting(False, "Let the accelerometer bias's horizontal part random-walk "
-                                                 "without GNSS too (the paper's Q; the vertical part always walks)")
+    accel_bias_walk_without_gnss: bool = setting(False, "Let the accelerometer bias random-walk without GNSS too "
+                                                 "(the paper's Q)")
     gnss_aiding_timeout_s: float = setting(5.0, "No valid fix for this long: the accelerometer bias is held [s]",
                                            low=0.0, low_open=True)
     unaided_accel_bias_sigma: float = setting(0.05, "Accelerometer-bias error added to P in the grade variance "

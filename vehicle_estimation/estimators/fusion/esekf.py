@@ -135,7 +135,6 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._no_hold = np.zeros(N_ERR)
         self._yaw_bias_direction = np.zeros(N_ERR)
         self._yaw_bias_direction[IBG:IBG + 3] = self._Rm0[2]      # base_link z in imu_link axes
-        self._vertical_in_imu = self._Rm0[2].copy()
         self._w_gnss = np.diag(np.asarray(c.gnss_sigma, float) ** 2)
         self._g_vec = np.array([0.0, 0.0, -c.gravity])
         self._w_nh = np.diag([c.nh_sigma_y ** 2, c.nh_sigma_z ** 2])   # read only
@@ -381,10 +380,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             qd = np.zeros(N_ERR)   # a new array: the previous one may still be referenced
             qd[IV:IV + 3] = (dt * c.q_accel_sigma) ** 2
             qd[IA:IA + 3] = (dt * c.q_gyro_sigma) ** 2
-            # Held without GNSS is the bias's horizontal part, which only the grade tells from
-            # the tilt; the vertical one (gravity's axis) the vertical constraint observes, so it
-            # walks as ever: held, P would settle on a drifting bias (NEES 30 on our demo).
-            qd[IBA:IBA + 3] = kb * c.q_accel_bias_sigma ** 2 * (1.0 if walk else self._vertical_in_imu ** 2)
+            qd[IBA:IBA + 3] = kb * c.q_accel_bias_sigma ** 2 if walk else 0.0
             qd[IBG:IBG + 3] = kb * c.q_gyro_bias_sigma ** 2
             qd[IM:IM + 2] = kb * c.q_mounting_sigma ** 2 if c.estimate_mounting else 0.0
             self._qd, self._qd_dt, self._qd_walk = qd, dt, walk
