@@ -16,10 +16,11 @@ The ENU origin of ``odom`` is the first valid GNSS fix; fixes with ``status.stat
 ignored and counted. Once the GNSS track has fixed the heading, ``odom`` is ENU about that
 origin, and ``estimation/datum`` (sensor_msgs/NavSatFix, transient local, stamped then) gives
 it in WGS84: what a consumer needs to put the pose on a map, and the report to compare it
-with a truth given in another frame. Without GNSS (a car that has none, or before the first fixes show the
-heading) every output is still published once the filter has aligned: ``odom`` is then the
-pose at alignment with a free heading, the position is dead-reckoned and its covariance grows,
-and ``/diagnostics`` says so (``heading source``, ``position source`` and a ``missing`` entry).
+with a truth given in another frame. Without GNSS (a car that has none, or before the first
+fixes show the heading) every output is still published once the filter has aligned:
+``odom`` is then the pose at alignment with a free heading, the position is dead-reckoned and
+its covariance grows, and ``/diagnostics`` says so (``heading source``, ``position source``
+and a ``missing`` entry).
 """
 
 from __future__ import annotations
