@@ -232,8 +232,9 @@ class FusionNode(EstimatorNode):
         msg.header.frame_id = self.odom_frame
         self.publish(self.pub_datum, msg)
         self._datum_published = True
-        self.note_event(f"odom is ENU about {msg.latitude:.9f}, {msg.longitude:.9f}, {msg.altitude:.3f} m "
-                        "(estimation/datum)")
+        # logged, not a /diagnostics event: after a reset the last event stays the reset's
+        self.get_logger().info(f"odom is ENU about {msg.latitude:.9f}, {msg.longitude:.9f}, "
+                               f"{msg.altitude:.3f} m (estimation/datum)")
 
     def publish_bias(self, raw: Imu) -> None:
         """The IMU bias estimate in sensor_msgs/Imu form (see ros.runtime.upstream.FusionImuBias)."""
