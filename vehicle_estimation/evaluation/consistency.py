@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from vehicle_estimation.contract import topics
+from vehicle_estimation.estimators.common.rotations import wrap_angle
 from vehicle_estimation.evaluation import metrics
 
 #: Estimates whose variance is checked against the truth: (name, estimate topic, key, variance
@@ -46,10 +47,6 @@ BIAS_SPEC = (("accel_bias", "a", "m/s²", 1.0), ("gyro_bias", "g", "deg/s", 180.
 POSE_AND_BIAS_TOPICS = (topics.DATUM, topics.GT_DATUM, topics.IMU_BIAS, topics.GT_IMU_BIAS)
 
 Series = dict[str, np.ndarray]
-
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def truth_in_odom(data: dict[str, Series]) -> dict[str, Any] | None:
@@ -91,7 +88,7 @@ def truth_in_odom(data: dict[str, Series]) -> dict[str, Any] | None:
             x, y = x - float(east), y - float(north)
             frame = "ENU about estimation/datum"
     else:
-        turn = float(_wrap(est["yaw"][idx[0]] - yaw[0]))
+        turn = wrap_angle(float(est["yaw"][idx[0]] - yaw[0]))
         c, s = math.cos(turn), math.sin(turn)
         dx, dy = x - x[0], y - y[0]
         x = est["x"][idx[0]] + c * dx - s * dy
@@ -115,7 +112,7 @@ def _pose_series(data: dict[str, Series], start: float) -> dict[str, dict[str, A
         variance = np.column_stack([est["var_x"][i], est["var_y"][i]])
         out["fusion_xy"] = {"t": aligned["t"][sel], "error": error[sel], "variance": variance[sel],
                             "converged": None, "unit": "m", "scale": 1.0}
-    yaw_error = _wrap(est["yaw"][i] - aligned["yaw"])
+    yaw_error = wrap_angle(est["yaw"][i] - aligned["yaw"])   # elementwise on arrays
     out["fusion_yaw"] = {"t": aligned["t"][sel], "error": yaw_error[sel], "variance": est["var_yaw"][i][sel],
                          "converged": None, "unit": "deg", "scale": 180.0 / math.pi}
     return out
@@ -126,16 +123,16 @@ def _bias_series(data: dict[str, Series], start: float) -> dict[str, dict[str, A
     if est is None or true is None:
         return {}
     out: dict[str, dict[str, Any]] = {}
+    order = np.argsort(true["t"], kind="stable")
     for name, prefix, unit, scale in BIAS_SPEC:
-        columns = []
-        for axis in "xyz":
-            t, idx, truth = metrics.align(est["t"], np.arange(est["t"].size, dtype=float), true["t"],
-                                          true[prefix + axis], mode="linear", hold_last=True)
-            columns.append((t, idx.astype(int), truth))
-        t, i = columns[0][0], columns[0][1]
+        # align() on the sample index once; the three axes share the truth's stamps
+        t, idx, _ = metrics.align(est["t"], np.arange(est["t"].size, dtype=float), true["t"],
+                                  true[prefix + "x"], mode="linear", hold_last=True)
         if t.size == 0:
             continue
-        error = np.column_stack([est[prefix + axis][i] - truth for axis, (_, _, truth) in zip("xyz", columns)])
+        i = idx.astype(int)
+        error = np.column_stack([est[prefix + axis][i] - np.interp(t, true["t"][order], true[prefix + axis][order])
+                                 for axis in "xyz"])
         variance = np.column_stack([est[f"var_{prefix}{axis}"][i] for axis in "xyz"])
         sel = t >= start
         out[name] = {"t": t[sel], "error": error[sel], "variance": variance[sel], "converged": None,
