@@ -69,6 +69,7 @@ import numpy as np
 from vehicle_estimation.contract import topics as T
 from vehicle_estimation.paths import params_file
 from vehicle_estimation.evaluation import metrics
+from vehicle_estimation.estimators.common.rotations import wrap_angle
 from vehicle_estimation.contract.vehicle import VehicleParams
 from vehicle_estimation.launcher.options import add_namespace_option, add_tuning_option, node_group_factory
 from vehicle_estimation.evaluation.validation_tables import format_table
@@ -342,7 +343,7 @@ def lateral_rows(case: Case, est: dict, vehicle: VehicleParams, filter_name: str
 def _wrapped(t_est, y_est, t_true, y_true, start: float) -> tuple[np.ndarray, np.ndarray]:
     """(angle error wrapped to [-pi, pi), zeros) after ``start``: an angle's error as a pair for :func:`_row`."""
     _, e, r = _errors(t_est, np.unwrap(y_est), t_true, np.unwrap(y_true), start)
-    err = (e - r + math.pi) % (2.0 * math.pi) - math.pi
+    err = wrap_angle(e - r)
     return err, np.zeros_like(err)
 
 
