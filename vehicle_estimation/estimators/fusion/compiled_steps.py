@@ -51,13 +51,13 @@ class FusionCompiledSteps:
     _mounting_min_speeds: Callable[[], tuple[float, float]]
     _moving_constraint_noise: Callable[[], np.ndarray]
 
-    def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
+    def _update_compiled(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate, held: np.ndarray) -> int:
         """``_update`` (Eqs. (37)-(44)) by :func:`.ins_kernels.joseph_update`,
         :func:`.ins_kernels.inject` and :func:`.ins_kernels.invariant_reset`."""
         c = self.config
         P, dz = np.empty((N_ERR, N_ERR)), np.empty(N_ERR)
         res = ins_kernels.joseph_update(self._P, H, W, y, 0.0 if gate is None else float(gate), gate is not None,
-                                        self._held_direction(), P, dz)
+                                        held, P, dz)
         if res == ins_kernels.UPDATE_FAILED:
             self.rejected["update_numerical"] += 1
             return -1

@@ -113,6 +113,10 @@ class FusionConfig:
     # --- stationary updates (paper: "greatly reduced" NH variances; value not given) ---
     stationary_sigma: float = setting(0.02, "Non-holonomic std while stationary [m/s]", low=0.0, low_open=True)
     stationary_update_longitudinal: bool = setting(True, "Also pseudo-measure body-x speed 0 at standstill")
+    stationary_rate_update: bool = setting(False, "Also pseudo-measure the angular rate 0 at standstill (a "
+                                           "zero-rate update of the gyro bias; not in the paper)")
+    stationary_rate_sigma: float = setting(0.005, "Std of one zero-rate update [rad/s]: the gyro's white noise "
+                                           "per sample and what a parked car's rocking adds", low=0.0, low_open=True)
     stationary_speed_threshold: float = setting(0.05, "|CAN speed| at or below this is stationary [m/s]", low=0.0)
     stationary_max_accel: float = setting(0.15, "Stationary only while the low-passed gravity-free acceleration "
                                           "is below this [m/s^2]", low=0.0, low_open=True)

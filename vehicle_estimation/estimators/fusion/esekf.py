@@ -421,7 +421,8 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
     def _nh_update(self, t: float) -> None:
         """NH constraints / stationary update (Sec. 5.4, rows (3) of Eq. (45))."""
         c = self.config
-        if self._is_stationary(t):
+        stationary = self._is_stationary(t)
+        if stationary:
             rows = [0, 1, 2] if c.stationary_update_longitudinal else [1, 2]
             W = np.diag(np.full(len(rows), c.stationary_sigma ** 2))
         else:
@@ -429,9 +430,11 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             W = self._moving_constraint_noise()
         if self.compiled:
             self._constraint_update_compiled(rows, W)
-            return
-        pred, H = self._body_speed_rows(rows)
-        self._update(-pred, H, W, None)
+        else:
+            pred, H = self._body_speed_rows(rows)
+            self._update(-pred, H, W, None)
+        if stationary and c.stationary_rate_update:
+            self._zero_rate_update()
 
     def _held_direction(self) -> np.ndarray:
         """The error-state direction the gain leaves out (the yaw-rate bias as a Schmidt consider
@@ -444,14 +447,16 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         """Whether an update moves P with the estimate (:func:`.error_state.invariant_reset`)."""
         return self.config.invariant_reset_without_gnss and not self.gnss_aided
 
-    def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate) -> int:
-        """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form).
+    def _update(self, y: np.ndarray, H: np.ndarray, W: np.ndarray, gate, held: np.ndarray | None = None) -> int:
+        """Eqs. (37)-(44): gain, error-state estimate, injection, covariance (Joseph form);
+        ``held``: the consider direction, :meth:`_held_direction`'s when None.
 
         Returns 1 if applied, 0 if gated out, -1 on numerical failure.
         """
         P = self._P
+        held = self._held_direction() if held is None else held
         if self.compiled:
-            return self._update_compiled(y, H, W, gate)
+            return self._update_compiled(y, H, W, gate, held)
         PHt = P @ H.T
         S = H @ PHt + W
         S_inv = _inv_small(S)
@@ -463,7 +468,6 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             if not d2 <= gate:
                 return 0
         K = PHt @ S_inv                                   # Eq. (37)
-        held = self._held_direction()
         K -= np.outer(held, held @ K)                     # Schmidt: a consider state keeps its value
         dz = K @ y                                        # Eq. (40), with the previous error reset to 0
         if not math.isfinite(float(dz.sum())):
