@@ -187,6 +187,7 @@ def test_fusion_compiled_gives_the_numpy_estimates(gnss):
     # Without GNSS the compiled step reads the corner gate (the low-passed yaw rate) before the
     # sample's propagation, the numpy path after it: one sample apart where a corner starts.
     cfg = {} if gnss else {"invariant_reset_without_gnss": True, "mounting_max_yaw_rate_without_gnss": 10.0}
+    cfg["stationary_rate_update"] = True      # standing, an update that is not held (the Schmidt hold)
     numpy_ekf, a = _fusion_run(False, drive, gnss, **cfg)
     compiled_ekf, b = _fusion_run(True, drive, gnss, **cfg)
     assert compiled_ekf.status == numpy_ekf.status == ("running" if gnss else "waiting_for_heading")
