@@ -5,7 +5,8 @@ Sec. 7.1 aligns at standstill: roll and pitch from the averaged accelerometer, t
 the mean of ``init_stationary_samples`` (200) stationary gyro samples, the accelerometer bias
 zero, the yaw from GNSS motion once the vehicle moves. A filter started while the car drives
 levels itself on the CAN-speed kinematics instead (not in the paper). Until the heading is
-fixed the filter navigates with a free heading (:attr:`FusionEKF.navigating`).
+fixed the filter navigates with a free heading (:attr:`FusionEKF.navigating`). At every later
+standstill a zero-rate update reads the gyro bias again (not in the paper either).
 
 :class:`FusionInitialisation` is a part of
 :class:`~vehicle_estimation.estimators.fusion.esekf.FusionEKF`, written apart: it reads and
@@ -171,11 +172,13 @@ class FusionInitialisation:
     def _zero_rate_update(self) -> None:
         """At standstill the gyro reads its bias (and the Earth's rate, which the bias then carries,
         as the alignment's mean does): a zero-rate update observes the bias directly, on every
-        axis. Without it the stationary velocity update observes the gyro bias only through the
-        tilt it integrates, and takes the accelerometer's noise for a tilt drift: on FASTSim's
-        drive without GNSS the pitch-rate bias moved 1 mrad/s the wrong way in the first standing
-        seconds at a sigma of 0.2 mrad/s, and the pitch after pulling away was 0.6 deg off. Not
-        held (:meth:`_held_direction`): standing, the yaw-rate bias is observed too."""
+        axis, from the sample the propagation has just used. Without it the stationary velocity
+        update observes the gyro bias only through the tilt it integrates, and nothing of the
+        yaw-rate bias, which without GNSS nothing else observes either. Not held
+        (:meth:`_held_direction`): standing, the yaw-rate bias is observed too, and each stop
+        refreshes it (FASTSim's car without GNSS: heading 3.7 -> 0.7 deg RMSE; the pitch-rate
+        bias 1.1 -> 0.5 mrad/s off as it pulls away, the pitch over its first 10 s 0.64 -> 0.54
+        deg RMSE)."""
         if self._w_prev is None:
             return
         H = np.zeros((3, N_ERR))
