@@ -36,6 +36,12 @@ __all__ = ["InspectError", "format_summary", "summarize"]
 
 
 # ------------------------------------------------------------------------------ public API
+def _ground_truth(topic: str) -> bool:
+    """A simulator's truth topic (every one of ``topics.GROUND_TRUTH_TOPICS`` is under
+    ``ground_truth/``, and so are any a bag adds): read by ``report``, never by a node."""
+    return topics.relative(topic).startswith("ground_truth/")
+
+
 def summarize(bag: Path, params_files: list[Path], remaps: dict[str, str]) -> dict:
     """Everything ``inspect`` prints, as plain JSON-able data (see :func:`format_summary`)."""
     try:
@@ -48,18 +54,15 @@ def summarize(bag: Path, params_files: list[Path], remaps: dict[str, str]) -> di
     inputs = {t: topic_summary(contract[t]) for t in topics.INPUT_TOPICS}
     others = []
     missing = [t for t in topics.INPUT_TOPICS if not inputs[t]["present"]]
-    def ground_truth(topic: str) -> bool:
-        return topics.relative(topic) in topics.GROUND_TRUTH_TOPICS or topics.relative(topic).startswith("ground_truth/")
-
     for topic, entry in sorted(data["others"].items()):
-        gt = ground_truth(topic)
+        gt = _ground_truth(topic)
         hint = None
         if not gt:
             # a missing input under a namespace (/car1/imu/data), or the only topic of its type
             # that is not ground truth (ground_truth/imu_bias is an Imu too)
             hint = next((t for t in missing if topics.relative(topic).endswith("/" + t)), None)
             by_type = [t for t in missing if {topics.INPUT_TYPES[t]} == entry["types"]]
-            same = [o for o, e in data["others"].items() if e["types"] == entry["types"] and not ground_truth(o)]
+            same = [o for o, e in data["others"].items() if e["types"] == entry["types"] and not _ground_truth(o)]
             if hint is None and len(by_type) == 1 and len(same) == 1:
                 hint = by_type[0]
         others.append({"topic": topic, "types": sorted(entry["types"]), "count": entry["count"],
