@@ -29,6 +29,11 @@ from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IP, 
 
 __all__ = ["FusionInitialisation"]
 
+#: The zero-rate update's Jacobian: the angular rate at standstill is the gyro bias (read only).
+_ZERO_RATE_H = np.zeros((3, N_ERR))
+_ZERO_RATE_H[:, IBG:IBG + 3] = np.eye(3)
+_ZERO_RATE_H.flags.writeable = False
+
 
 class FusionInitialisation:
     """The alignment and heading steps of :class:`FusionEKF` (a mixin of it)."""
@@ -181,10 +186,8 @@ class FusionInitialisation:
         deg RMSE)."""
         if self._w_prev is None:
             return
-        H = np.zeros((3, N_ERR))
-        H[:, IBG:IBG + 3] = np.eye(3)
         W = np.eye(3) * self.config.stationary_rate_sigma ** 2
-        self._update(self._w_prev - self._bg, H, W, None, held=self._no_hold)
+        self._update(self._w_prev - self._bg, _ZERO_RATE_H, W, None, held=self._no_hold)
 
     def _heading_step(self, t: float, z: np.ndarray, W: np.ndarray) -> bool:
         """Yaw initialisation from GNSS motion (Sec. 7.1).
