@@ -43,7 +43,7 @@ def test_truck_bag_through_the_mass_node_with_ta_aekf(tmp_path):
     out = tmp_path / "estimates"
     proc = subprocess.run(
         [sys.executable, "-m", "vehicle_estimation", "replay", str(bag), "--record", str(out), "--quiet",
-         "--vehicle", "heavy_truck", "--params", "estimation", "--params", "heavy_truck_ta_aekf"],
+         "--vehicle", "heavy_truck", "--params", "estimation", "--params", "heavy_truck_ta_aekf", "--in-process"],
         capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     masses, variances = [], []

@@ -112,7 +112,8 @@ def test_roll_compensation_halves_the_sideslip_error(lane_change, tmp_path):
         out = tmp_path / f"estimates_{name}"
         proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(lane_change),
                                "--record", str(out), "--quiet", "--vehicle", str(PARAMS / "commonroad_bmw320i.yaml"),
-                               "--params", "estimation", *extra], capture_output=True, text=True, timeout=600)
+                               "--params", "estimation", "--in-process", *extra],
+                              capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0 and "lossless: True" in proc.stdout, proc.stdout + proc.stderr[-3000:]
         results[name] = _sideslip_rmse_deg(out, start_s=6.0)
     (on, diag_on), (off_rmse, diag_off) = results["on"], results["off"]

@@ -210,7 +210,7 @@ def test_a_short_hilly_fastsim_drive_through_the_nodes(tmp_path):
     bag = fd.write_drive(fd.sensor_result(fd.simulate(E2E_DURATION), seed=0), tmp_path / "fastsim_hills")
     out = tmp_path / "estimates"
     proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(bag), "--record", str(out),
-                           "--vehicle", str(PARAMS_FILE), "--quiet"], capture_output=True, text=True, timeout=900, check=False)
+                           "--vehicle", str(PARAMS_FILE), "--quiet", "--in-process"], capture_output=True, text=True, timeout=900, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "lossless: True" in proc.stdout
     _, series = report.compute_groups(report.read_bag(out, report.WANTED))

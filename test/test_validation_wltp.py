@@ -205,7 +205,7 @@ def test_calibrate_then_replay_a_heavier_wltp_drive_through_the_nodes(tmp_path):
     assert len(doc["mass"]["torque_regression"]) == 4
     out = tmp_path / "estimates"
     proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "replay", str(loaded), "--record", str(out),
-                           "--vehicle", str(calibrated), "--quiet"], capture_output=True, text=True, timeout=900,
+                           "--vehicle", str(calibrated), "--quiet", "--in-process"], capture_output=True, text=True, timeout=900,
                           check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "lossless: True" in proc.stdout
