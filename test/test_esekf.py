@@ -786,6 +786,61 @@ def test_standing_without_gnss_the_gyro_reads_its_bias(zero_rate_update):
         assert abs(error[2]) > 0.9e-3 and abs(ekf.gyro_bias[2] - aligned[2]) < 1e-4
 
 
+def test_without_gnss_the_position_carries_the_speed_offset_that_lasts_while_its_value_does():
+    """A bus speed in 1 km/h steps at a steady 24 m/s reads 86 km/h, 0.11 m/s low, for as long
+    as the cruise lasts (FASTSim's cycles hold integer speeds). Without GNSS the position along
+    the track is off by that offset times the distance; counted as correlated over 1 s only,
+    the published sigma says a few metres. With ``lasting_speed_offset`` the covariance carries
+    each span of one reported value as its own offset, and the estimates are the same."""
+    config = dict(speed_error_correlation_s=1.0, q_accel_sigma=0.05)
+    filters = {flag: FusionEKF(FusionConfig(lasting_speed_offset=flag, **config)) for flag in (False, True)}
+    f_level, w = _static_imu()
+    step, stated = 0.005, (1.0 / 3.6) ** 2 / 12.0
+    x = speed = 0.0
+    for i in range(int(75.0 / step)):
+        t = i * step
+        accel = 1.2 if 1.5 <= t and speed < 24.0 else 0.0
+        f = f_level + np.array([accel, 0.0, 0.0])
+        for ekf in filters.values():
+            if i % 2 == 0:
+                ekf.update_speed(t, round(3.6 * speed) / 3.6, stated)
+            ekf.process_imu(t, f, w)
+        speed = min(24.0, speed + accel * step)
+        x += speed * step
+    lasting, correlated = filters[True], filters[False]
+    assert not lasting.gnss_aided and lasting.initialized is False
+    np.testing.assert_array_equal(lasting.position_enu, correlated.position_enu)
+    error = lasting.position_enu[0] - x
+    assert error < -5.0                         # 0.11 m/s low for 55 s of cruise
+    assert abs(error) > 2.0 * math.sqrt(correlated.position_covariance[0, 0])
+    assert abs(error) < 2.0 * math.sqrt(lasting.position_covariance[0, 0])
+    # the cruise's offset lies along the track: across it nothing is added
+    np.testing.assert_allclose(lasting.position_covariance[1:, 1:], correlated.position_covariance[1:, 1:],
+                               rtol=1e-4, atol=0)
+
+
+def test_a_speed_that_changes_every_sample_adds_almost_no_lasting_offset():
+    """Spans of one reported value: a quantised cruise is one span (its offset times its time,
+    along the track); a noisy speed closes a span every sample, and 60 s of it add what white
+    noise would, sigma^2 dt T, not sigma^2 T^2."""
+    from vehicle_estimation.estimators.fusion.lasting_speed_offset import LastingSpeedOffset
+
+    east, north, variance = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 0.0064
+    held, noisy = LastingSpeedOffset(), LastingSpeedOffset()
+    rng = np.random.default_rng(1)
+    for i in range(6001):
+        t = 0.01 * i
+        held.add(t, 23.89, variance, east if t < 30.0 else north)
+        noisy.add(t, 24.0 + rng.normal(0.0, 0.08), variance, east)
+    D = np.array([29.99, 30.01])    # each interval along the axis of the sample that ends it
+    np.testing.assert_allclose(held.covariance[:2, :2], variance * np.outer(D, D), rtol=1e-9)
+    assert noisy.covariance[0, 0] == pytest.approx(variance * 0.01 * 60.0, rel=1e-6)
+    held.add(60.01, 23.61, variance, north)         # the next step: the cruise's span is closed
+    assert held.covariance[0, 0] == pytest.approx(variance * D[0] ** 2, rel=1e-9)
+    held.reset()
+    assert not held.covariance.any()
+
+
 def test_without_gnss_a_crawl_does_not_move_the_mounting():
     """Below ``mounting_min_speed_without_gnss`` the constraints carry no mounting columns: a
     crawl leaves the mounting where the alignment put it (its errors go to the attitude, which

@@ -180,6 +180,11 @@ class FusionConfig:
                                                  "(the paper's Q)")
     gnss_aiding_timeout_s: float = setting(5.0, "No valid fix for this long: the accelerometer bias is held [s]",
                                            low=0.0, low_open=True)
+    lasting_speed_offset: bool = setting(
+        False, "Without GNSS the published position covariance also carries the CAN speed's offset as "
+        "lasting while its reported value does not change (a 1 km/h step at a steady speed): per such "
+        "span its stated variance times D D^T, D the forward axis integrated over the span's time; the "
+        "estimates do not change")
     unaided_accel_bias_sigma: float = setting(0.05, "Accelerometer-bias error added to P in the grade variance "
                                               "until GNSS observes the bias: the prior P lacks, or what P "
                                               "misplaces when p0 holds the prior [m/s^2]", low=0.0)

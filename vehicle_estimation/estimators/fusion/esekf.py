@@ -72,6 +72,7 @@ from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IM, 
 from vehicle_estimation.estimators.fusion import ins_kernels
 from vehicle_estimation.estimators.fusion.compiled_steps import FusionCompiledSteps
 from vehicle_estimation.estimators.fusion.initialisation import FusionInitialisation
+from vehicle_estimation.estimators.fusion.lasting_speed_offset import LastingSpeedOffset
 from vehicle_estimation.estimators.fusion.outputs import FusionOutputs
 
 __all__ = ["FusionEKF"]
@@ -174,6 +175,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._t_speed: float | None = None
         self._last_speed: float | None = None
         self._speed_variance: float | None = None   # the last CAN speed's stated variance
+        self._lasting_speed = LastingSpeedOffset()
         self._last_gnss: np.ndarray | None = None
         self._t_nh = -math.inf
         self._t_cornering = -math.inf   # the last IMU stamp whose step ended in a corner
@@ -581,6 +583,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             return False
         spacing = t - self._t_speed if self._t_speed is not None else math.inf
         self._speed_variance = r
+        self._note_speed(t, s, r)
         r = white_equivalent_variance(r, self.config.speed_error_correlation_s, spacing)
         self._t_speed = t
         self._last_speed = s

@@ -20,6 +20,7 @@ import numpy as np
 from vehicle_estimation.estimators.common.rotations import euler_from_rotmat, rotmat_to_quat
 from vehicle_estimation.estimators.fusion.config import FusionConfig
 from vehicle_estimation.estimators.fusion.error_state import IA, IBA, IBG, IM, IP, IV, N_ERR
+from vehicle_estimation.estimators.fusion.lasting_speed_offset import LastingSpeedOffset
 
 __all__ = ["FusionOutputs"]
 
@@ -53,6 +54,7 @@ class FusionOutputs:
     _t_gnss: float | None
     _t_gnss_applied: float | None
     _speed_variance: float | None
+    _lasting_speed: LastingSpeedOffset
     _body_speed_rows: Callable[..., tuple]
 
     position_enu = _copy_of("_p", "Position in the ENU frame [m].")
@@ -63,11 +65,26 @@ class FusionOutputs:
     gyro_bias = _copy_of("_bg", "Gyro bias in imu_link [rad/s] (measured = true + bias).")
     covariance = _copy_of("_P", "17x17 error-state covariance, order [dp(ENU), dv(ENU), eps(ENU), "
                                 "dba(imu_link), dbg(imu_link), dm (mounting pitch, yaw)].")
-    position_covariance = _covariance_block(IP, 3, "ENU position covariance [m^2].")
     velocity_covariance = _covariance_block(IV, 3, "ENU velocity covariance [m^2/s^2].")
     gyro_bias_covariance = _covariance_block(IBG, 3, "Gyro bias covariance [rad^2/s^2].")
     mounting_covariance = _covariance_block(IM, 2, "2x2 covariance of the mounting pitch and yaw "
                                                    "refinement [rad^2].")
+
+    @property
+    def position_covariance(self) -> np.ndarray:
+        """ENU position covariance [m^2]; without GNSS with the speed's lasting offsets
+        (``FusionConfig.lasting_speed_offset``)."""
+        cov = self._P[IP:IP + 3, IP:IP + 3].copy()
+        if self.config.lasting_speed_offset and not self.gnss_aided:
+            cov += self._lasting_speed.covariance
+        return cov
+
+    def _note_speed(self, t: float, speed: float, variance: float) -> None:
+        """A CAN speed at stamp ``t`` as reported, for the lasting offsets; a fix forgets them."""
+        if self.gnss_aided:
+            self._lasting_speed.reset()
+        elif self.config.lasting_speed_offset:
+            self._lasting_speed.add(t, speed, variance, self.rotation_matrix[:, 0])
 
     @property
     def gnss_aided(self) -> bool:
