@@ -55,6 +55,7 @@ class FusionOutputs:
     _t_gnss_applied: float | None
     _speed_variance: float | None
     _lasting_speed: LastingSpeedOffset
+    _is_stationary: Callable[[float], bool]
     _body_speed_rows: Callable[..., tuple]
 
     position_enu = _copy_of("_p", "Position in the ENU frame [m].")
@@ -80,11 +81,13 @@ class FusionOutputs:
         return cov
 
     def _note_speed(self, t: float, speed: float, variance: float) -> None:
-        """A CAN speed at stamp ``t`` as reported, for the lasting offsets; a fix forgets them."""
+        """A CAN speed at stamp ``t`` as reported, for the lasting offsets; a fix forgets them.
+        Standing, the stationary update holds the position, not the speed: nothing accrues."""
         if self.gnss_aided:
             self._lasting_speed.reset()
         elif self.config.lasting_speed_offset:
-            self._lasting_speed.add(t, speed, variance, self.rotation_matrix[:, 0])
+            forward = np.zeros(3) if self._is_stationary(t) else self.rotation_matrix[:, 0]
+            self._lasting_speed.add(t, speed, variance, forward)
 
     @property
     def gnss_aided(self) -> bool:
