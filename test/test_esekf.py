@@ -789,7 +789,7 @@ def test_standing_without_gnss_the_gyro_reads_its_bias(zero_rate_update):
 def test_without_gnss_the_position_carries_the_speed_offset_that_lasts_while_its_value_does():
     """A bus speed in 1 km/h steps at a steady 24 m/s reads 86 km/h, 0.11 m/s low, for as long
     as the cruise lasts (FASTSim's cycles hold integer speeds). Without GNSS the position along
-    the track is off by that offset times the distance; counted as correlated over 1 s only,
+    the track is off by that offset times the cruise's time; counted as correlated over 1 s only,
     the published sigma says a few metres. With ``lasting_speed_offset`` the covariance carries
     each span of one reported value as its own offset, and the estimates are the same."""
     config = dict(speed_error_correlation_s=1.0, q_accel_sigma=0.05)
