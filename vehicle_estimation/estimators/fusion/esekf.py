@@ -583,12 +583,12 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             return False
         spacing = t - self._t_speed if self._t_speed is not None else math.inf
         self._speed_variance = r
-        self._note_speed(t, s, r)
         r = white_equivalent_variance(r, self.config.speed_error_correlation_s, spacing)
         self._t_speed = t
         self._last_speed = s
         if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
             return True
+        self._note_speed(t, s, self._speed_variance)
         pred, H = self._body_speed_rows([0])
         if self.config.speed_unsigned and pred[0] < 0.0:
             s = -abs(s)

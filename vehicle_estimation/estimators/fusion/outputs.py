@@ -81,8 +81,9 @@ class FusionOutputs:
         return cov
 
     def _note_speed(self, t: float, speed: float, variance: float) -> None:
-        """A CAN speed at stamp ``t`` as reported, for the lasting offsets; a fix forgets them.
-        Standing, the stationary update holds the position, not the speed: nothing accrues."""
+        """A CAN speed at stamp ``t`` as reported, once aligned (before, the forward axis is not
+        yet in the position's frame), for the lasting offsets; a fix forgets them. Standing, the
+        stationary update holds the position, not the speed: nothing accrues."""
         if self.gnss_aided:
             self._lasting_speed.reset()
         elif self.config.lasting_speed_offset:
