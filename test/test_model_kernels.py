@@ -24,6 +24,7 @@ from vehicle_estimation.contract.vehicle import VehicleParams, load_vehicle_para
 from vehicle_estimation.estimators.common import compiled, small_linalg  # noqa: E402
 from vehicle_estimation.estimators.fusion import ins_kernels  # noqa: E402
 from vehicle_estimation.estimators.fusion.config import FusionConfig  # noqa: E402
+from vehicle_estimation.estimators.fusion.error_state import N_ERR  # noqa: E402
 from vehicle_estimation.estimators.fusion.esekf import FusionEKF  # noqa: E402
 from vehicle_estimation.estimators.state.ckf import VehicleStateCKF, VehicleStateConfig  # noqa: E402
 from vehicle_estimation.estimators.state.vbackf import VBConfig, VehicleStateVBACKF  # noqa: E402
@@ -163,7 +164,8 @@ def test_vb_failure_paths_end_as_the_numpy_path():
 
 # ---- the fusion ES-EKF --------------------------------------------------------------------
 def _fusion_run(compiled_on: bool, drive, gnss: bool = True, **cfg) -> tuple[FusionEKF, np.ndarray]:
-    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1, **cfg))
+    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, estimate_speed_scale=True,
+                                        nh_sigma_z=0.1, **cfg))
     ekf.compiled = compiled_on
     events = [(float(t), 0, i) for i, t in enumerate(drive.imu_t)]
     events += [(float(t), 1, i) for i, t in enumerate(drive.speed_t)]
@@ -172,7 +174,8 @@ def _fusion_run(compiled_on: bool, drive, gnss: bool = True, **cfg) -> tuple[Fus
     for t, kind, i in sorted(events):
         if kind == 0:
             ekf.process_imu(t, drive.accel[i], drive.gyro[i])
-            rows.append(np.concatenate([ekf._p, ekf._v, ekf._q, ekf._ba, ekf._bg, ekf._Rm.ravel(), ekf._P.ravel()]))
+            rows.append(np.concatenate([ekf._p, ekf._v, ekf._q, ekf._ba, ekf._bg, ekf._Rm.ravel(),
+                                        ekf._speed_scale_error, ekf._P.ravel()]))
         elif kind == 1:
             ekf.update_speed(t, float(drive.speed_v[i]))
         elif math.isfinite(drive.gnss["enu_meas"][i, 0]):
@@ -199,7 +202,8 @@ def test_fusion_compiled_gives_the_numpy_estimates(gnss):
 def _running_ekf(seed: int, **cfg) -> FusionEKF:
     """A filter in a random running state (every kernel input non-trivial; no GNSS fix)."""
     rng = np.random.default_rng(seed)
-    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, nh_sigma_z=0.1, **cfg))
+    ekf = FusionEKF(dataclasses.replace(FusionConfig(), estimate_mounting=True, estimate_speed_scale=True,
+                                        nh_sigma_z=0.1, **cfg))
     ekf.status = "running"
     ekf._t = 100.0
     ekf._p, ekf._v = rng.normal(size=3) * 50.0, rng.normal(size=3) * 10.0
@@ -210,8 +214,9 @@ def _running_ekf(seed: int, **cfg) -> FusionEKF:
     m = rng.normal(size=4)      # a turned IMU: the mounting's base_link axes are not its own
     ekf._Rm = quat_to_rotmat(m / np.linalg.norm(m))
     ekf._ba, ekf._bg = rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.002
-    A = rng.normal(size=(17, 17)) * 0.1
-    ekf._P = A @ A.T + 1e-3 * np.eye(17)
+    ekf._speed_scale_error[:] = rng.normal() * 0.02
+    A = rng.normal(size=(N_ERR, N_ERR)) * 0.1
+    ekf._P = A @ A.T + 1e-3 * np.eye(N_ERR)
     ekf._f_prev, ekf._w_prev = rng.normal(size=3) + [0.0, 0.0, 9.8], rng.normal(size=3) * 0.2
     return ekf
 
@@ -231,7 +236,9 @@ def test_each_fusion_kernel_agrees_to_1e12(invariant):
     for ekf in pairs:
         pred, H = ekf._body_speed_rows([0, 1, 2])
         ekf._update(np.array([0.3, -0.2, 0.1]) - pred, H, np.diag([0.04, 0.01, 0.01]), None)
-    for name in (*fields, "_ba", "_bg", "_Rm"):
+        ekf.update_speed(ekf.time, 12.0, 0.01)      # the speed's scale error in the gain
+        ekf._nh_update(ekf.time)
+    for name in (*fields, "_ba", "_bg", "_Rm", "_speed_scale_error"):
         assert _relative(getattr(pairs[1], name), getattr(pairs[0], name)) < 1e-12, name
 
 
@@ -239,7 +246,7 @@ def test_fusion_gate_and_failure_codes_match_numpy():
     for compiled_on in (False, True):
         ekf = _running_ekf(2)
         ekf.compiled = compiled_on
-        H = np.zeros((1, 17))
+        H = np.zeros((1, N_ERR))
         H[0, 3] = 1.0
         assert ekf._update(np.array([1e3]), H, np.array([[0.01]]), 9.0) == 0          # gated
         assert ekf._update(np.array([0.1]), H, np.array([[0.01]]), 9.0) == 1

@@ -160,6 +160,26 @@ def test_imu_bias_message_carries_the_mounting():
     np.testing.assert_array_equal(mount, np.eye(3))
 
 
+def test_the_speeds_scale_is_applied_beyond_what_a_quantised_speed_explains():
+    """``estimation/speed_scale`` as the state and mass nodes apply it: 1 without a fresh one,
+    1 within 2 sigma of 1 (a quantised speed's lasting offset looks like a scale), beyond that
+    shrunk by its variance (positive-part James-Stein), so that it never jumps in."""
+    from vehicle_estimation.ros.runtime.upstream import StampedValue, UpstreamHistory, speed_scale_at
+
+    history = UpstreamHistory()
+    assert speed_scale_at(history, 10.0) == 1.0
+    sigma = 0.0041
+    applied = []
+    for i, k in enumerate((0.003, 0.008, 0.0083, 0.012, 0.03)):
+        history.add(float(i), StampedValue(float(i), 1.0 + k, sigma ** 2, True))
+        applied.append(speed_scale_at(history, float(i)) - 1.0)
+    assert applied[:2] == [0.0, 0.0]
+    assert 0.0 < applied[2] < 0.001                    # just beyond 2 sigma: a little
+    assert applied[3] == pytest.approx(0.012 * (1.0 - 4.0 * sigma ** 2 / 0.012 ** 2))
+    assert 0.027 < applied[4] < 0.03                   # 3 %: 2.8 % of it
+    assert speed_scale_at(history, 4.0 + 60.0) == 1.0  # stale
+
+
 def test_before_the_fusion_speaks_the_imu_is_turned_by_the_vehicles_mounting():
     """Until the fusion publishes its bias and refined mounting (or without a fusion node), a
     node still turns imu/data into base_link by ``vehicle.imu_mounting_rpy``: an IMU facing

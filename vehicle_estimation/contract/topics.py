@@ -30,6 +30,7 @@ VEHICLE_STATE = "estimation/vehicle_state"    # geometry_msgs/TwistWithCovarianc
 SIDESLIP = "estimation/sideslip"              # std_msgs/Float64 [rad]
 SIDESLIP_STAMPED = "estimation/sideslip_stamped"  # geometry_msgs/Vector3Stamped
 FUSION_GRADE = "estimation/fusion/road_grade"  # geometry_msgs/Vector3Stamped, pitch-derived grade
+SPEED_SCALE = "estimation/speed_scale"        # geometry_msgs/Vector3Stamped: x CAN speed / true speed, y variance, z GNSS-observed
 DATUM = "estimation/datum"                    # sensor_msgs/NavSatFix: WGS84 origin of odom once it is ENU (latched)
 MASS = "estimation/mass"                      # std_msgs/Float64 [kg]
 MASS_STAMPED = "estimation/mass_stamped"      # geometry_msgs/Vector3Stamped: x value, y variance, z converged

@@ -402,7 +402,7 @@ def _compiled_ratios(cores: list[dict[str, Any]]) -> list[str]:
     """Compiled kernels against the same maths in numpy, measured side by side in this run."""
     rows = {r["name"]: r for r in cores}
     lines = []
-    for label, target in (("fusion ES-EKF: IMU step (17 states, incl. vehicle constraints)", "fusion_imu_us"),
+    for label, target in (("fusion ES-EKF: IMU step (18 states, incl. vehicle constraints)", "fusion_imu_us"),
                           ("fusion ES-EKF: CAN speed update", None), ("fusion ES-EKF: GNSS update", None),
                           ("vehicle state: CKF (paper 004, 5 states, 4-wheel Dugoff)", "state_step_us"),
                           ("vehicle state: VB-ACKF, N = 10 (shipped)", "state_step_us")):

@@ -105,7 +105,7 @@ def _bench_fusion(d: DriveArrays, compiled_maths: bool) -> list[StepTiming]:
             ekf.update_gnss(t, d.gnss["enu_meas"][i], np.diag(d.gnss["cov"]))
         per_kind[kind].append(clock() - t0)
     out = []
-    for kind, label in ((0, "fusion ES-EKF: IMU step (17 states, incl. vehicle constraints)"),
+    for kind, label in ((0, "fusion ES-EKF: IMU step (18 states, incl. vehicle constraints)"),
                         (1, "fusion ES-EKF: CAN speed update"), (2, "fusion ES-EKF: GNSS update")):
         x = np.asarray(per_kind[kind][20:], dtype=float) * 1e-3
         out.append(StepTiming(f"{label}, {how}", len(x), float(np.median(x)), float(np.percentile(x, 99))))

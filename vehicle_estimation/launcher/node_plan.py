@@ -38,7 +38,8 @@ NODE_DEFAULTS: dict[str, dict[str, Any]] = {
     "mass": {"method": "ffrls", "accel_source": "auto", "speed_source": "fusion", "require_slope": True},
 }
 
-FUSION_OUTPUTS = (topics.ODOMETRY, topics.IMU_COMPENSATED, topics.IMU_BIAS, topics.FUSION_GRADE)
+FUSION_OUTPUTS = (topics.ODOMETRY, topics.IMU_COMPENSATED, topics.IMU_BIAS, topics.FUSION_GRADE,
+                  topics.SPEED_SCALE)
 SLOPE_OUTPUTS = (topics.ROAD_SLOPE, topics.ROAD_SLOPE_STAMPED)
 STATE_OUTPUTS = (topics.VEHICLE_STATE, topics.SIDESLIP, topics.SIDESLIP_STAMPED)
 MASS_OUTPUTS = (topics.MASS, topics.MASS_STAMPED)
@@ -268,6 +269,8 @@ def plan_nodes(inputs: dict[str, Any], params: dict[str, dict[str, Any]],
             lines += _mounting_yaw_lines(imu, speed_stats, fusion)
     if not fusion_ok:
         empty += FUSION_OUTPUTS
+    elif not _truthy(fusion.get("fusion.estimate_speed_scale", False)):
+        empty.append(topics.SPEED_SCALE)        # published only where the scale is estimated
     nodes["fusion"] = {"needs": "imu/data", "runs": fusion_ok, "lines": lines}
 
     # vehicle_state

@@ -41,6 +41,7 @@ RECORDED_TOPICS = (
     (topics.IMU_COMPENSATED, "sensor_msgs/msg/Imu"),
     (topics.IMU_BIAS, "sensor_msgs/msg/Imu"),
     (topics.FUSION_GRADE, "geometry_msgs/msg/Vector3Stamped"),
+    (topics.SPEED_SCALE, "geometry_msgs/msg/Vector3Stamped"),
     (topics.DATUM, "sensor_msgs/msg/NavSatFix"),
     (topics.ROAD_SLOPE, "std_msgs/msg/Float64"),
     (topics.ROAD_SLOPE_STAMPED, "geometry_msgs/msg/Vector3Stamped"),

@@ -44,7 +44,7 @@ from vehicle_estimation.ros.conversions import MAX_SPEED, MalformedMessage, chas
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.cdr import StampedLayout
-from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_ns, stamp_ns
+from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_ns, stamp_ns, stamp_to_sec
 from vehicle_estimation.ros.runtime.upstream import companion_bytes
 
 FUSION_GRADE = topics.FUSION_GRADE
@@ -89,6 +89,8 @@ class FusionNode(EstimatorNode):
         self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
         self.pub_grade = self.publisher(Vector3Stamped, FUSION_GRADE)
         self.pub_bias = self.publisher(Imu, topics.IMU_BIAS)
+        self.pub_speed_scale = (self.publisher(Vector3Stamped, topics.SPEED_SCALE)
+                                if self.ekf.config.estimate_speed_scale else None)
         self.pub_datum = self.publisher(NavSatFix, topics.DATUM, latched=True)
         self._origin_fix: NavSatFix | None = None      # a copy: a subscription may reuse its message
         self._datum_published = False
@@ -247,6 +249,13 @@ class FusionNode(EstimatorNode):
                                  ekf.gyro_bias, np.ravel(ekf.gyro_bias_covariance),
                                  ekf.accel_bias, np.ravel(ekf.accel_bias_covariance)))
         self.publish(self.pub_bias, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
+        if self.pub_speed_scale is not None:
+            # what the wheels and the CAN speed read over the true speed; "converged" once GNSS
+            # has halved its prior's sigma
+            variance = ekf.speed_scale_variance
+            observed = variance <= (0.5 * ekf.config.p0_speed_scale_sigma) ** 2
+            self.publish(self.pub_speed_scale, companion_bytes(stamp_to_sec(raw.header.stamp), ekf.speed_scale,
+                                                               variance, observed, self.base_frame))
 
     def _base_link(self, cov: np.ndarray) -> np.ndarray:
         Rm = self.ekf.mounting_rotation
@@ -339,6 +348,9 @@ class FusionNode(EstimatorNode):
                     else "refined by the vehicle constraints (no GNSS)" if pitch
                     else "yaw refined, pitch held in a corner (no GNSS)" if yaw
                     else f"held below {ekf.config.mounting_min_speed_without_gnss:g} m/s without GNSS")
+            if ekf.config.estimate_speed_scale:
+                values["speed scale (CAN / true)"] = (f"{ekf.speed_scale:.4f} +- "
+                                                      f"{math.sqrt(ekf.speed_scale_variance):.4f}")
             sigma = ekf.vertical_constraint_sigma
             values["vertical constraint"] = f"{sigma:g} m/s" + (
                 " (loosened after a corner: no GNSS)" if sigma > ekf.config.nh_sigma_z else "")

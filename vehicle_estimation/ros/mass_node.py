@@ -77,6 +77,7 @@ from vehicle_estimation.ros.runtime.upstream import (
     companion_bytes,
     companion_value,
     is_fresh,
+    speed_scale_at,
 )
 
 #: A powertrain reading above this multiple of what the vehicle's engine can deliver (maximum
@@ -144,6 +145,7 @@ class MassNode(EstimatorNode):
         self.slope = UpstreamHistory()
         self.odom_speed = UpstreamHistory()
         self.state_speed = UpstreamHistory()
+        self.speed_scale = UpstreamHistory()
         self.can_speed: tuple[float, float] | None = None
         self.wheel_speed: tuple[float, float] | None = None
         self.brake_torque = 0.0
@@ -170,6 +172,9 @@ class MassNode(EstimatorNode):
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
                                     forward_speed_entry)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
+        # What the wheels read over the true speed (the rolling radius), from the fusion: a scale
+        # error of the speed is one of every acceleration derived from it, and of the mass.
+        self.subscribe_upstream(Vector3Stamped, topics.SPEED_SCALE, self.speed_scale, companion_value)
 
     # -------------------------------------------------------------- inputs
     def on_imu(self, t: float, msg: Imu) -> None:
@@ -184,7 +189,7 @@ class MassNode(EstimatorNode):
         reading = self.read_speed(msg)
         if reading is None:
             return
-        self.can_speed = (t, reading[0])
+        self.can_speed = (t, reading[0] / speed_scale_at(self.speed_scale, t))
 
     def on_joint_states(self, t: float, msg: JointState) -> None:
         try:
@@ -197,7 +202,7 @@ class MassNode(EstimatorNode):
             self.brake_torque, self.brake_t = max(total, 0.0), t
         undriven = reading.wheel_speeds[self.undriven_wheels].tolist()
         if all(math.isfinite(w) for w in undriven):
-            v = sum(undriven) / len(undriven) * self.vehicle.wheel_radius
+            v = sum(undriven) / len(undriven) * self.vehicle.wheel_radius / speed_scale_at(self.speed_scale, t)
             self.window.add_wheel_speed(t, v)
             self.wheel_speed = (t, v)
 

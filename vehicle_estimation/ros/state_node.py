@@ -100,6 +100,7 @@ from vehicle_estimation.ros.runtime.upstream import (
     companion_bytes,
     companion_value,
     is_fresh,
+    speed_scale_at,
 )
 
 #: Where vx comes from, for /diagnostics ("vx source").
@@ -214,6 +215,7 @@ class StateNode(EstimatorNode):
         self.slope = UpstreamHistory(lag_s=self.feedback_lag)   # feedback edges (see nodes.PIPELINE)
         self.mass = UpstreamHistory(lag_s=self.feedback_lag)
         self.attitude = UpstreamHistory()
+        self.speed_scale = UpstreamHistory()
         self.roll_source = "off" if not self.roll_compensation else "none yet (no fusion attitude)"
         self.chassis = None
         self.chassis_t = -math.inf
@@ -274,6 +276,8 @@ class StateNode(EstimatorNode):
             self.subscribe_upstream(Imu, topics.IMU_COMPENSATED, self.attitude, lateral_gravity_entry)
         self.subscribe_upstream(Vector3Stamped, topics.ROAD_SLOPE_STAMPED, self.slope, companion_value)
         self.subscribe_upstream(Vector3Stamped, topics.MASS_STAMPED, self.mass, companion_value)
+        # the fusion's rolling radius over the nominal: the wheel and CAN speeds' scale error
+        self.subscribe_upstream(Vector3Stamped, topics.SPEED_SCALE, self.speed_scale, companion_value)
 
     def _load_correction(self, setting: str) -> BPCorrection | None:
         if not setting:
@@ -373,7 +377,7 @@ class StateNode(EstimatorNode):
         v, var = reading
         if math.isnan(var):
             var = self.speed_fallback_std ** 2
-        self.speed = (t, v, var)
+        self.speed = (t, v / speed_scale_at(self.speed_scale, t), var)
         self.speed_t = t
         self.speed_presence.sample(t)
 
@@ -435,7 +439,7 @@ class StateNode(EstimatorNode):
         self.set_missing("vehicle/joint_states", not fresh)
         if fresh:
             steer = self.chassis.steering_wheel_angle / self.vehicle.steering_ratio
-            wheels = self.chassis.wheel_speeds
+            wheels = self.chassis.wheel_speeds / speed_scale_at(self.speed_scale, t)
         else:
             steer, wheels = 0.0, np.full(4, np.nan)
         if not math.isfinite(steer):

@@ -44,6 +44,7 @@ class FusionCompiledSteps:
     _w_lp: np.ndarray
     _f_prev: np.ndarray | None
     _w_prev: np.ndarray | None
+    _speed_scale_error: np.ndarray
     # FusionEKF's methods these steps share with its numpy path:
     _update_process_noise: Callable[[float], None]
     _held_direction: Callable[[], np.ndarray]
@@ -65,7 +66,8 @@ class FusionCompiledSteps:
             return 0
         self._P = P
         q, R, Rm = np.empty(4), np.empty((3, 3)), np.empty((3, 3))
-        ins_kernels.inject(dz, self._p, self._v, self._q, self._ba, self._bg, self._Rm, c.estimate_mounting, q, R, Rm)
+        ins_kernels.inject(dz, self._p, self._v, self._q, self._ba, self._bg, self._Rm, c.estimate_mounting,
+                           self._speed_scale_error, q, R, Rm)
         if self._invariant_reset_due():
             ins_kernels.invariant_reset(self._P, dz)
         self._q, self._R = q, R
@@ -80,7 +82,7 @@ class FusionCompiledSteps:
         res = ins_kernels.constraint_update(self._R, self._Rm, self._v, np.asarray(rows, dtype=np.int64), W,
                                             c.full_velocity_jacobian, *self._mounting_min_speeds(),
                                             c.estimate_mounting, self._held_direction(), self._invariant_reset_due(),
-                                            self._p, self._ba, self._bg,
+                                            self._p, self._ba, self._bg, self._speed_scale_error,
                                             self._q, self._P, q, R, Rm, P)
         self._take_constraint_outcome(res, q, R, Rm, P)
 
@@ -97,7 +99,7 @@ class FusionCompiledSteps:
                                    self._g_vec, self._p, self._v, self._q, self._R, self._a_lp, self._w_lp, self._P,
                                    self._qd, _MOVING_ROWS, self._moving_constraint_noise(), c.full_velocity_jacobian,
                                    *self._mounting_min_speeds(), c.estimate_mounting, self._held_direction(),
-                                   self._invariant_reset_due(), self._Rm,
+                                   self._invariant_reset_due(), self._Rm, self._speed_scale_error,
                                    q, R, Rm, P)
         self._q, self._R, self._P = q, R, P      # the propagation, at least
         self._take_constraint_outcome(res, q, R, Rm, P)

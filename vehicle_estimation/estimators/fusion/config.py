@@ -175,6 +175,18 @@ class FusionConfig:
                                          "IMU calibrated to the body, as in the paper [rad]", low=0.0)
     q_mounting_sigma: float = setting(1e-7, "Mounting random walk per sample [rad]: a mounting does not move",
                                       low=0.0)
+    # --- the CAN speed's scale (not in the paper; see the esekf module docstring) ---
+    estimate_speed_scale: bool = setting(False, "Estimate the CAN speed's scale error (the effective rolling "
+                                         "radius: tyre wear, pressure, a speed calibrated for another tyre) "
+                                         "as a filter state, speed = (1 + k) v_x; GNSS positions observe it, "
+                                         "without them it is held (a consider state)")
+    p0_speed_scale_sigma: float = setting(0.02, "Prior std of that scale error k [-]", low=0.0)
+    q_speed_scale_sigma: float = setting(4e-6, "Random walk of k per sample [-]: tyres wear and warm up "
+                                         "slowly (1e-3 over 10 min at 100 Hz)", low=0.0)
+    speed_scale_floor_sigma: float = setting(
+        0.004, "Added to the published scale's std [-]: a speed in 1 km/h steps is off by one amount "
+        "for as long as it keeps a value, 0.4 % at 70 km/h, and the filter, which takes that offset "
+        "as correlated over speed_error_correlation_s, cannot tell it from a scale", low=0.0)
     # --- without GNSS (not in the paper, which always has it; see the class docstring) ---
     accel_bias_walk_without_gnss: bool = setting(False, "Let the accelerometer bias random-walk without GNSS too "
                                                  "(the paper's Q)")

@@ -3,14 +3,17 @@ error covariance moves with the estimate."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from vehicle_estimation.estimators.common.rotations import skew
 
 # Error-state layout, Eq. (32): z = [dp, dv, eps, dba, dbg], then the mounting pitch and
-# yaw corrections dm (about base_link y, z; R_m,true = (I + S([0, dm])) R_m,hat).
-IP, IV, IA, IBA, IBG, IM = 0, 3, 6, 9, 12, 15
-N_ERR = 17
+# yaw corrections dm (about base_link y, z; R_m,true = (I + S([0, dm])) R_m,hat), then the CAN
+# speed's scale error dk (speed = (1 + k) v_x).
+IP, IV, IA, IBA, IBG, IM, IK = 0, 3, 6, 9, 12, 15, 17
+N_ERR = 18
 
 # Phases of :attr:`FusionEKF.status`, in order: alignment (Sec. 7.1), then the free heading
 # until GNSS motion fixes the yaw, then running.
@@ -39,3 +42,27 @@ def invariant_reset(P, dz):
     G[IP:IP + 3, IA:IA + 3] = skew(dz[IP:IP + 3])
     P = G @ P @ G.T
     return 0.5 * (P + P.T)
+
+
+def scaled_speed_row(pred: np.ndarray, H: np.ndarray, scale_error: float,
+                     held: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The CAN speed's prediction ``(1 + k) v_x`` and its Jacobian, from the body speed's
+    ``v_x`` and its row ``H``: the other columns scaled by ``1 + k``, the scale error's ``v_x``
+    (0 when ``held``: then k is taken as known in the filter, its variance a consider term of the
+    published covariances, :class:`.lasting_speed_offset.LastingSpeedOffset`)."""
+    scale = 1.0 + scale_error
+    H = H * scale
+    H[0, IK] = 0.0 if held else pred[0]
+    return pred * scale, H
+
+
+def innovation_inverse(S: np.ndarray) -> np.ndarray | None:
+    """Inverse of a small innovation covariance, or None (1x1, the CAN speed's, in closed form)."""
+    if S.shape[0] == 1:
+        s = S[0, 0]
+        return np.array([[1.0 / s]]) if s > 0.0 and math.isfinite(s) else None
+    try:
+        inv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None
+    return inv if math.isfinite(float(inv.sum())) else None

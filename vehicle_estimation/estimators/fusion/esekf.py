@@ -41,6 +41,12 @@ constraints; ``mounting_rpy`` (the node's ``vehicle.imu_mounting_rpy``) gives th
 mounting (roll included) and the states refine pitch and yaw from there.  Every output (orientation,
 grade, body velocity, compensated IMU) is in ``base_link``.
 
+Beyond the paper: the CAN speed's scale error k, speed = (1 + k) v_x (``estimate_speed_scale``).
+The bus speed is the wheels' rate times a nominal rolling radius, off by a few per cent with
+tyre wear, pressure or another tyre; taken as exact it pulls the velocity off GNSS's by that
+share, and every acceleration derived from it (the mass) with it. GNSS positions observe k;
+without them it is held, a consider state (:meth:`FusionEKF._held_direction`).
+
 Frames and conventions (REP-103): body = FLU (x forward, y left, z up); world = ENU.
 The paper's NED equations are frame-agnostic except for the gravity vector, so the
 filter runs directly in ENU with gravity (0, 0, -g).  Quaternions are (x, y, z, w),
@@ -66,9 +72,10 @@ from vehicle_estimation.estimators.common.noise import white_equivalent_variance
 from vehicle_estimation.estimators.common.rotations import (quat_from_euler, quat_from_rotvec, quat_multiply,
                                                             quat_to_rotmat, skew)
 from vehicle_estimation.estimators.fusion.config import FusionConfig
-from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IM, IP, IV, N_ERR, STATUS_ALIGNING,
+from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IK, IM, IP, IV, N_ERR, STATUS_ALIGNING,
                                                               STATUS_RUNNING, STATUS_WAIT_HEADING,
-                                                              STATUS_WAIT_STANDSTILL, invariant_reset)
+                                                              STATUS_WAIT_STANDSTILL, innovation_inverse,
+                                                              invariant_reset, scaled_speed_row)
 from vehicle_estimation.estimators.fusion import ins_kernels
 from vehicle_estimation.estimators.fusion.compiled_steps import FusionCompiledSteps
 from vehicle_estimation.estimators.fusion.initialisation import FusionInitialisation
@@ -95,25 +102,6 @@ def _float_or_nan(x) -> float:
         return math.nan
 
 
-def _inv_small(S: np.ndarray) -> np.ndarray | None:
-    """Inverse of a small SPD innovation covariance (closed form for 1x1 / 2x2)."""
-    m = S.shape[0]
-    if m == 1:
-        s = S[0, 0]
-        return np.array([[1.0 / s]]) if s > 0.0 and math.isfinite(s) else None
-    if m == 2:
-        a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
-        det = a * d - b * c
-        if not (det > 0.0 and math.isfinite(det)):
-            return None
-        return np.array([[d, -b], [-c, a]]) / det
-    try:
-        inv = np.linalg.inv(S)
-    except np.linalg.LinAlgError:
-        return None
-    return inv if math.isfinite(float(inv.sum())) else None
-
-
 class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
     """Error-state EKF of paper 003 Alg. 1 with the API in REP-103 terms.
 
@@ -131,18 +119,21 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             np.full(3, c.p0_position_sigma ** 2), np.full(3, c.p0_velocity_sigma ** 2),
             np.asarray(c.p0_attitude_sigma, float) ** 2,
             np.full(3, c.p0_accel_bias_sigma ** 2), np.full(3, c.p0_gyro_bias_sigma ** 2),
-            np.full(2, c.p0_mounting_sigma ** 2 if c.estimate_mounting else 0.0)])
+            np.full(2, c.p0_mounting_sigma ** 2 if c.estimate_mounting else 0.0),
+            [c.p0_speed_scale_sigma ** 2 if c.estimate_speed_scale else 0.0]])
         self._Rm0 = quat_to_rotmat(quat_from_euler(*(float(a) for a in c.mounting_rpy)))  # imu_link -> base_link
-        self._no_hold = np.zeros(N_ERR)
-        self._yaw_bias_direction = np.zeros(N_ERR)
-        self._yaw_bias_direction[IBG:IBG + 3] = self._Rm0[2]      # base_link z in imu_link axes
+        # Schmidt consider directions, rows (:meth:`_held_direction`): none, the yaw-rate bias
+        # (the gyro bias along base_link z, in the IMU's axes by the nominal mounting), the scale
+        yaw_bias, scale = np.zeros(N_ERR), np.zeros(N_ERR)
+        yaw_bias[IBG:IBG + 3], scale[IK] = self._Rm0[2], 1.0
+        self._holds = {(False, False): np.zeros((1, N_ERR)), (True, False): yaw_bias[None], (False, True): scale[None],
+                       (True, True): np.stack([yaw_bias, scale])}
         self._w_gnss = np.diag(np.asarray(c.gnss_sigma, float) ** 2)
         self._g_vec = np.array([0.0, 0.0, -c.gravity])
         self._w_nh = np.diag([c.nh_sigma_y ** 2, c.nh_sigma_z ** 2])   # read only
         self._w_nh_cornering = np.diag([c.nh_sigma_y ** 2,                # read only
                                         max(c.nh_sigma_z, c.nh_sigma_z_cornering_without_gnss) ** 2])
-        self._eye15 = np.eye(N_ERR)
-        self._eye3 = np.eye(3)
+        self._eye_n, self._eye3 = np.eye(N_ERR), np.eye(3)
         self._di = np.arange(N_ERR)
         self._qd_dt: float | None = None
         self._qd_walk: bool | None = None
@@ -165,6 +156,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._ba = np.zeros(3)
         self._bg = np.zeros(3)
         self._Rm = self._Rm0.copy()   # imu_link -> base_link (mounting)
+        self._speed_scale_error = np.zeros(1)   # k: CAN speed = (1 + k) v_x (the kernels add in place)
         self._P = np.diag(self._p0_diag)
         self._F = np.eye(N_ERR)
         self._t: float | None = None  # last IMU stamp
@@ -385,10 +377,12 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             qd[IBA:IBA + 3] = kb * c.q_accel_bias_sigma ** 2 if walk else 0.0
             qd[IBG:IBG + 3] = kb * c.q_gyro_bias_sigma ** 2
             qd[IM:IM + 2] = kb * c.q_mounting_sigma ** 2 if c.estimate_mounting else 0.0
+            qd[IK] = kb * c.q_speed_scale_sigma ** 2 if c.estimate_speed_scale else 0.0
             self._qd, self._qd_dt, self._qd_walk = qd, dt, walk
 
     # ------------------------------------------------------------------ measurement helpers
-    def _body_speed_rows(self, rows, mounting_columns: tuple[bool, bool] | None = None) -> tuple:
+    def _body_speed_rows(self, rows, mounting_columns: tuple[bool, bool] | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
         """Prediction v_b[rows] = (R_m R^T v)[rows] in base_link and its Jacobian H (Eq. (46)).
 
         With R_true = (I - S(eps)) R_hat:  v_i = R^T v - R^T S(v) eps  (the attitude
@@ -438,12 +432,13 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         if stationary and c.stationary_rate_update:
             self._zero_rate_update()
 
-    def _held_direction(self) -> np.ndarray:
-        """The error-state direction the gain leaves out (the yaw-rate bias as a Schmidt consider
-        state without GNSS: the gyro bias along base_link z, in the IMU's axes by the nominal
-        mounting), or zeros."""
-        held = self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided
-        return self._yaw_bias_direction if held else self._no_hold
+    def _held_direction(self, yaw_rate_bias: bool = True) -> np.ndarray:
+        """The error-state directions the gain leaves out, orthonormal rows (zeros: none): Schmidt
+        consider states while no GNSS fix aids: the yaw-rate bias, and the speed's scale, which
+        only positions observe (the accelerometer would tell it only through its bias: a 36 t
+        truck without GNSS learnt 1.18 from its first pull-away, NEES 55)."""
+        return self._holds[(yaw_rate_bias and self.config.hold_yaw_rate_bias_without_gnss and not self.gnss_aided,
+                            self.speed_scale_held)]
 
     def _invariant_reset_due(self) -> bool:
         """Whether an update moves P with the estimate (:func:`.error_state.invariant_reset`)."""
@@ -461,7 +456,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             return self._update_compiled(y, H, W, gate, held)
         PHt = P @ H.T
         S = H @ PHt + W
-        S_inv = _inv_small(S)
+        S_inv = innovation_inverse(S)
         if S_inv is None:
             self.rejected["update_numerical"] += 1
             return -1
@@ -470,12 +465,12 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             if not d2 <= gate:
                 return 0
         K = PHt @ S_inv                                   # Eq. (37)
-        K -= np.outer(held, held @ K)                     # Schmidt: a consider state keeps its value
+        K -= held.T @ (held @ K)                          # Schmidt: a consider state keeps its value
         dz = K @ y                                        # Eq. (40), with the previous error reset to 0
         if not math.isfinite(float(dz.sum())):
             self.rejected["update_numerical"] += 1
             return -1
-        A = self._eye15 - K @ H
+        A = self._eye_n - K @ H
         P = A @ P @ A.T + K @ W @ K.T                     # Eq. (44), Joseph form
         self._P = invariant_reset(P, dz) if self._invariant_reset_due() else 0.5 * (P + P.T)
         self._inject(dz)
@@ -500,6 +495,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._R = quat_to_rotmat(self._q)
         self._ba += dz[IBA:IBA + 3]
         self._bg += dz[IBG:IBG + 3]
+        self._speed_scale_error += dz[IK]
         if self.config.estimate_mounting:
             self._Rm = quat_to_rotmat(quat_from_rotvec([0.0, dz[IM], dz[IM + 1]])) @ self._Rm
 
@@ -589,7 +585,8 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         if self.status in (STATUS_WAIT_STANDSTILL, STATUS_ALIGNING):
             return True
         self._note_speed(t, s, self._speed_variance)
-        pred, H = self._body_speed_rows([0])
+        pred, H = scaled_speed_row(*self._body_speed_rows([0]), float(self._speed_scale_error[0]),
+                                   self.speed_scale_held)
         if self.config.speed_unsigned and pred[0] < 0.0:
             s = -abs(s)
         y = np.array([s - pred[0]])

@@ -61,7 +61,7 @@ class FusionInitialisation:
     _heading_fixes: list
     _stationary_source: Callable[[float], bool | None]
     _w_prev: np.ndarray | None
-    _no_hold: np.ndarray
+    _held_direction: Callable[..., np.ndarray]
     _update: Callable[..., int]
 
     def _align_step(self, t: float, f: np.ndarray, w: np.ndarray) -> None:
@@ -179,15 +179,16 @@ class FusionInitialisation:
         as the alignment's mean does): a zero-rate update observes the bias directly, on every
         axis, from the sample the propagation has just used. Without it the stationary velocity
         update observes the gyro bias only through the tilt it integrates, and nothing of the
-        yaw-rate bias, which without GNSS nothing else observes either. Not held
-        (:meth:`_held_direction`): standing, the yaw-rate bias is observed too, and each stop
+        yaw-rate bias, which without GNSS nothing else observes either. The yaw-rate bias is not
+        held here (:meth:`_held_direction`): standing, it is observed too, and each stop
         refreshes it (FASTSim's car without GNSS: heading 3.7 -> 0.7 deg RMSE; the pitch-rate
         bias 1.1 -> 0.5 mrad/s off as it pulls away, the pitch over its first 10 s 0.64 -> 0.54
         deg RMSE)."""
         if self._w_prev is None:
             return
         W = np.eye(3) * self.config.stationary_rate_sigma ** 2
-        self._update(self._w_prev - self._bg, _ZERO_RATE_H, W, None, held=self._no_hold)
+        self._update(self._w_prev - self._bg, _ZERO_RATE_H, W, None,
+                     held=self._held_direction(yaw_rate_bias=False))
 
     def _heading_step(self, t: float, z: np.ndarray, W: np.ndarray) -> bool:
         """Yaw initialisation from GNSS motion (Sec. 7.1).

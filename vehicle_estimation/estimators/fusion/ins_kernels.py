@@ -26,7 +26,7 @@ __all__ = ["UPDATE_APPLIED", "UPDATE_GATED", "UPDATE_FAILED", "body_speed_rows",
            "propagate", "warm_up"]
 
 UPDATE_APPLIED, UPDATE_GATED, UPDATE_FAILED = 1, 0, -1
-_IP, _IV, _IA, _IBA, _IBG, _IM = 0, 3, 6, 9, 12, 15
+_IP, _IV, _IA, _IBA, _IBG, _IM, _IK = 0, 3, 6, 9, 12, 15, 17
 
 
 @kernel
@@ -149,8 +149,9 @@ def body_speed_rows(R, Rm, v, rows, full_jacobian, mounting_pitch, mounting_yaw,
 @kernel
 def joseph_update(P, H, W, y, gate, use_gate, hold, P_out, dz):
     """Eqs. (37)-(40), (44): gain, error estimate ``dz`` and the Joseph-form covariance,
-    symmetrised. ``hold``, a unit error-state direction (or zeros: none), takes that direction
-    out of the gain, K - hold hold^T K (a Schmidt consider state: the yaw-rate bias).
+    symmetrised. ``hold``, orthonormal error-state directions as rows (or zeros: none), takes
+    them out of the gain, K - hold^T hold K (Schmidt consider states: the yaw-rate bias, the
+    speed's scale).
     Returns ``UPDATE_APPLIED``, ``UPDATE_GATED`` (``y^T S^-1 y`` above ``gate``) or
     ``UPDATE_FAILED`` (``S`` not positive definite, or ``dz`` not finite)."""
     n = P.shape[0]
@@ -177,13 +178,14 @@ def joseph_update(P, H, W, y, gate, use_gate, hold, P_out, dz):
             return UPDATE_GATED
     K = np.empty((n, m))
     cholesky_solve_rows(L, PHt, K)                     # Eq. (37): K = P H^T S^-1
-    for a in range(m):
-        s = 0.0
-        for i in range(n):
-            s += hold[i] * K[i, a]
-        if s != 0.0:
+    for r in range(hold.shape[0]):
+        for a in range(m):
+            s = 0.0
             for i in range(n):
-                K[i, a] -= hold[i] * s
+                s += hold[r, i] * K[i, a]
+            if s != 0.0:
+                for i in range(n):
+                    K[i, a] -= hold[r, i] * s
     total = 0.0
     for i in range(n):
         s = 0.0
@@ -218,13 +220,14 @@ def joseph_update(P, H, W, y, gate, use_gate, hold, P_out, dz):
 
 
 @kernel
-def inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out):
-    """Eqs. (41)-(43): ``p``, ``v``, the biases in place; the attitude ``q_new = q(-eps) (x) q``
-    into ``q_out``, ``R_out``; the mounting ``R(0, dm) R_m`` (dm about base_link axes) into
-    ``Rm_out`` with ``mounting``."""
+def inject(dz, p, v, q, ba, bg, Rm, mounting, scale, q_out, R_out, Rm_out):
+    """Eqs. (41)-(43): ``p``, ``v``, the biases and the speed's ``scale`` error (a 1-array) in
+    place; the attitude ``q_new = q(-eps) (x) q`` into ``q_out``, ``R_out``; the mounting
+    ``R(0, dm) R_m`` (dm about base_link axes) into ``Rm_out`` with ``mounting``."""
     for i in range(3):
         p[i] += dz[_IP + i]
         v[i] += dz[_IV + i]
+    scale[0] += dz[_IK]
     ex, ey, ez = -dz[_IA], -dz[_IA + 1], -dz[_IA + 2]
     ang = math.sqrt(ex * ex + ey * ey + ez * ez)
     if ang > 1e-12:
@@ -289,7 +292,7 @@ def invariant_reset(P, dz):
 
 @kernel
 def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting, hold, invariant,
-                      p, ba, bg, q, P, q_out, R_out, Rm_out, P_out):
+                      p, ba, bg, scale, q, P, q_out, R_out, Rm_out, P_out):
     """The non-holonomic / standstill update (Eqs. (45)-(47), rows (3)) in one call: the body
     velocity ``rows`` should be zero, with noise ``W``: :func:`body_speed_rows` (with
     ``mounting``, the mounting pitch's column from a speed of ``pitch_min_speed`` up, the yaw's
@@ -304,7 +307,7 @@ def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min
                     mounting and speed_sq >= yaw_min_speed * yaw_min_speed, pred, H)
     outcome = joseph_update(P, H, W, -pred, 0.0, False, hold, P_out, dz)
     if outcome == UPDATE_APPLIED:
-        inject(dz, p, v, q, ba, bg, Rm, mounting, q_out, R_out, Rm_out)
+        inject(dz, p, v, q, ba, bg, Rm, mounting, scale, q_out, R_out, Rm_out)
         if invariant:
             invariant_reset(P_out, dz)
     return outcome
@@ -312,7 +315,7 @@ def constraint_update(R, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min
 
 @kernel
 def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, rows, W, full_jacobian,
-             pitch_min_speed, yaw_min_speed, mounting, hold, invariant, Rm, q_out, R_out, Rm_out, P_out):
+             pitch_min_speed, yaw_min_speed, mounting, hold, invariant, Rm, scale, q_out, R_out, Rm_out, P_out):
     """:func:`propagate`, then :func:`constraint_update` at the propagated state: one IMU sample
     of a moving vehicle. The outputs hold the propagation where the update is not applied
     (its outcome is returned)."""
@@ -320,7 +323,7 @@ def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, 
     q1, R1, P1 = np.empty(4), np.empty((3, 3)), np.empty((n, n))
     propagate(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, qd, q1, R1, P1)
     outcome = constraint_update(R1, Rm, v, rows, W, full_jacobian, pitch_min_speed, yaw_min_speed, mounting,
-                                hold, invariant, p, ba, bg, q1, P1, q_out, R_out, Rm_out, P_out)
+                                hold, invariant, p, ba, bg, scale, q1, P1, q_out, R_out, Rm_out, P_out)
     if outcome != UPDATE_APPLIED:
         q_out[:] = q1
         R_out[:, :] = R1
@@ -331,7 +334,7 @@ def imu_step(dt, tau, f_prev, w_prev, ba, bg, g_vec, p, v, q, R, a_lp, w_lp, P, 
 _warm = False
 
 
-def warm_up(n: int = 17) -> None:
+def warm_up(n: int = 18) -> None:
     """Compile (or load from the cache) every kernel of this module now, with the argument types
     the filter uses, so that the first sample of a drive does not wait for the compiler."""
     global _warm
@@ -344,13 +347,14 @@ def warm_up(n: int = 17) -> None:
     H = np.zeros((2, n))
     body_speed_rows(R, R, v3, np.array([1, 2], dtype=np.int64), True, True, True, np.empty(2), H)
     dz = np.zeros(n)
-    joseph_update(P, H, np.eye(2), np.zeros(2), 1.0, True, np.zeros(n), np.empty((n, n)), dz)
-    inject(dz, v3.copy(), v3.copy(), q, v3.copy(), v3.copy(), R, True, np.empty(4), np.empty((3, 3)), np.empty((3, 3)))
+    joseph_update(P, H, np.eye(2), np.zeros(2), 1.0, True, np.zeros((1, n)), np.empty((n, n)), dz)
+    inject(dz, v3.copy(), v3.copy(), q, v3.copy(), v3.copy(), R, True, np.zeros(1), np.empty(4), np.empty((3, 3)),
+           np.empty((3, 3)))
     invariant_reset(np.eye(n), dz)
-    constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros(n),
-                      True, v3.copy(), v3.copy(), v3.copy(), q, P, np.empty(4), np.empty((3, 3)), np.empty((3, 3)),
-                      np.empty((n, n)))
+    constraint_update(R, R, v3.copy(), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True,
+                      np.zeros((1, n)), True, v3.copy(), v3.copy(), v3.copy(), np.zeros(1), q, P, np.empty(4),
+                      np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
     imu_step(0.01, 1.0, v3, v3, v3.copy(), v3.copy(), v3, v3.copy(), v3.copy(), q, R, v3.copy(), v3.copy(), P,
-             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros(n), True, R,
-             np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
+             np.zeros(n), np.array([1, 2], dtype=np.int64), np.eye(2), True, 1.0, 1.0, True, np.zeros((1, n)), True, R,
+             np.zeros(1), np.empty(4), np.empty((3, 3)), np.empty((3, 3)), np.empty((n, n)))
     _warm = True

@@ -16,6 +16,10 @@ along the car's forward axis u(t), so it moves the position by δ D with D = ∫
 σ² D Dᵀ, summed over the spans (the open one up to now). A speed that changes every sample (not
 quantised, or noisy wheel speeds) closes a span every sample and adds nearly nothing. It is a
 consider term: the estimates do not change.
+
+A scale error k of the speed (the rolling radius), which the filter holds without GNSS, lasts
+for the whole drive: it moves the position by k d, d the distance vector (the reported speed
+times the forward axis, integrated), and :attr:`distance` gives d since the last fix.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ class LastingSpeedOffset:
         self._value: float | None = None    # the reported speed of the open span [m/s]
         self._variance = 0.0                # its stated variance [m^2/s^2]
         self._direction_time = np.zeros(3)  # D of the open span [s]
+        self._distance = np.zeros(3)        # the reported speed times the forward axis, integrated [m]
         self._t: float | None = None
 
     def add(self, t: float, speed: float, variance: float, forward: np.ndarray) -> None:
@@ -45,6 +50,8 @@ class LastingSpeedOffset:
         value ends the open span and begins another."""
         if self._t is not None:
             self._direction_time += forward * (t - self._t)
+            if self._value is not None:
+                self._distance += forward * (self._value * (t - self._t))
         self._t = t
         if speed == self._value:
             return
@@ -57,3 +64,8 @@ class LastingSpeedOffset:
         """The ended spans' term and the open span's up to the last sample [m^2]."""
         D = self._direction_time
         return self._closed + self._variance * np.outer(D, D)
+
+    @property
+    def distance(self) -> np.ndarray:
+        """The distance vector travelled since the last reset, as the reported speed says [m]."""
+        return self._distance.copy()

@@ -19,7 +19,7 @@ import numpy as np
 
 from vehicle_estimation.estimators.common.rotations import euler_from_rotmat, rotmat_to_quat
 from vehicle_estimation.estimators.fusion.config import FusionConfig
-from vehicle_estimation.estimators.fusion.error_state import IA, IBA, IBG, IM, IP, IV, N_ERR
+from vehicle_estimation.estimators.fusion.error_state import IA, IBA, IBG, IK, IM, IP, IV, N_ERR, STATUS_RUNNING
 from vehicle_estimation.estimators.fusion.lasting_speed_offset import LastingSpeedOffset
 
 __all__ = ["FusionOutputs"]
@@ -39,6 +39,7 @@ class FusionOutputs:
     """The outputs of :class:`FusionEKF` (a mixin of it)."""
 
     config: FusionConfig
+    status: str
     _v: np.ndarray
     _w_lp: np.ndarray
     _w_nh: np.ndarray
@@ -48,6 +49,7 @@ class FusionOutputs:
     _Rm: np.ndarray
     _ba: np.ndarray
     _bg: np.ndarray
+    _speed_scale_error: np.ndarray
     _P: np.ndarray
     _eye3: np.ndarray
     _t: float | None
@@ -64,21 +66,44 @@ class FusionOutputs:
     mounting_rotation = _copy_of("_Rm", "imu_link -> base_link: the nominal mounting refined online.")
     accel_bias = _copy_of("_ba", "Accelerometer bias in imu_link [m/s^2] (measured = true + bias).")
     gyro_bias = _copy_of("_bg", "Gyro bias in imu_link [rad/s] (measured = true + bias).")
-    covariance = _copy_of("_P", "17x17 error-state covariance, order [dp(ENU), dv(ENU), eps(ENU), "
-                                "dba(imu_link), dbg(imu_link), dm (mounting pitch, yaw)].")
+    covariance = _copy_of("_P", "18x18 error-state covariance, order [dp(ENU), dv(ENU), eps(ENU), "
+                                "dba(imu_link), dbg(imu_link), dm (mounting pitch, yaw), dk (speed scale)].")
     velocity_covariance = _covariance_block(IV, 3, "ENU velocity covariance [m^2/s^2].")
     gyro_bias_covariance = _covariance_block(IBG, 3, "Gyro bias covariance [rad^2/s^2].")
     mounting_covariance = _covariance_block(IM, 2, "2x2 covariance of the mounting pitch and yaw "
                                                    "refinement [rad^2].")
 
     @property
+    def speed_scale(self) -> float:
+        """1 + k: the CAN speed over the body's forward speed (``estimate_speed_scale``; else 1)."""
+        return 1.0 + float(self._speed_scale_error[0])
+
+    @property
+    def speed_scale_variance(self) -> float:
+        """Variance of :attr:`speed_scale` [-]: its prior until GNSS observes it, and always the
+        quantised speed's lasting offset (``speed_scale_floor_sigma``); 0 when not estimated."""
+        if not self.config.estimate_speed_scale:
+            return 0.0
+        return float(self._P[IK, IK]) + self.config.speed_scale_floor_sigma ** 2
+
+    @property
     def position_covariance(self) -> np.ndarray:
         """ENU position covariance [m^2]; without GNSS with the speed's lasting offsets
         (``FusionConfig.lasting_speed_offset``)."""
         cov = self._P[IP:IP + 3, IP:IP + 3].copy()
-        if self.config.lasting_speed_offset and not self.gnss_aided:
-            cov += self._lasting_speed.covariance
+        if not self.gnss_aided:
+            if self.config.lasting_speed_offset:
+                cov += self._lasting_speed.covariance
+            if self.speed_scale_held:      # k d, d the distance since the last fix
+                d = self._lasting_speed.distance
+                cov += self.speed_scale_variance * np.outer(d, d)
         return cov
+
+    @property
+    def speed_scale_held(self) -> bool:
+        """Whether the filter takes the speed's scale as known, its variance a consider term of the
+        published velocity and position (``estimate_speed_scale`` while no GNSS position aids)."""
+        return self.config.estimate_speed_scale and not (self.gnss_aided and self.status == STATUS_RUNNING)
 
     def _note_speed(self, t: float, speed: float, variance: float) -> None:
         """A CAN speed at stamp ``t`` as reported, once aligned (before, the forward axis is not
@@ -86,7 +111,7 @@ class FusionOutputs:
         stationary update holds the position, not the speed: nothing accrues."""
         if self.gnss_aided:
             self._lasting_speed.reset()
-        elif self.config.lasting_speed_offset:
+        elif self.config.lasting_speed_offset or self.config.estimate_speed_scale:
             forward = np.zeros(3) if self._is_stationary(t) else self.rotation_matrix[:, 0]
             self._lasting_speed.add(t, speed, variance, forward)
 
@@ -219,6 +244,8 @@ class FusionOutputs:
         cov = H @ self._P @ H.T
         if self._speed_variance is not None and not self.gnss_aided and cov[0, 0] < self._speed_variance:
             cov[0, 0] = self._speed_variance
+        if self.speed_scale_held:          # the speed's held scale error, k v_x
+            cov[0, 0] += self.speed_scale_variance * float(self.velocity_body[0]) ** 2
         return cov
 
     def _base_attitude_jacobian(self) -> np.ndarray:

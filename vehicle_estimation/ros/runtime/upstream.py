@@ -105,6 +105,21 @@ def companion_value(msg: Vector3Stamped) -> tuple[float, StampedValue] | None:
     return t, StampedValue(t, v.x, v.y, v.z > 0.5)
 
 
+def speed_scale_at(history: UpstreamHistory, t: float) -> float:
+    """The fusion's ``estimation/speed_scale`` at ``t`` as the speeds' consumers apply it: what the
+    wheels and the CAN speed read over the true speed, 1 + k, with k shrunk by its own variance,
+    k (1 - 4 var / k^2), and 0 within 2 sigma (a positive-part James-Stein estimate). Within 2
+    sigma the scale is not told apart from a quantised speed's lasting offset, or from the CAN
+    speed's own scale where the wheels have another; nor does it jump in when it is. 1 without a
+    fresh estimate: the speeds as they are."""
+    item = history.at(t)
+    if item is None or not is_fresh(t, item.stamp) or not item.variance >= 0.0:
+        return 1.0
+    k = item.value - 1.0
+    shrink = 1.0 - 4.0 * item.variance / (k * k) if k != 0.0 else 0.0
+    return 1.0 + k * shrink if shrink > 0.0 else 1.0
+
+
 class FusionImuBias:
     """Bias correction of raw IMU samples with the fusion node's estimate.
 
