@@ -89,8 +89,9 @@ class FusionNode(EstimatorNode):
         self.pub_imu = self.publisher(Imu, topics.IMU_COMPENSATED)
         self.pub_grade = self.publisher(Vector3Stamped, FUSION_GRADE)
         self.pub_bias = self.publisher(Imu, topics.IMU_BIAS)
-        self.pub_speed_scale = (self.publisher(Vector3Stamped, topics.SPEED_SCALE)
-                                if self.ekf.config.estimate_speed_scale else None)
+        # always advertised (the replay's start-up waits for every subscription's publisher),
+        # published only where the scale is estimated
+        self.pub_speed_scale = self.publisher(Vector3Stamped, topics.SPEED_SCALE)
         self.pub_datum = self.publisher(NavSatFix, topics.DATUM, latched=True)
         self._origin_fix: NavSatFix | None = None      # a copy: a subscription may reuse its message
         self._datum_published = False
@@ -249,7 +250,7 @@ class FusionNode(EstimatorNode):
                                  ekf.gyro_bias, np.ravel(ekf.gyro_bias_covariance),
                                  ekf.accel_bias, np.ravel(ekf.accel_bias_covariance)))
         self.publish(self.pub_bias, self._imu_layout.pack(stamp_ns(raw.header.stamp), values.tolist()))
-        if self.pub_speed_scale is not None:
+        if ekf.config.estimate_speed_scale:
             # what the wheels and the CAN speed read over the true speed; "converged" once GNSS
             # has halved its prior's sigma
             variance = ekf.speed_scale_variance

@@ -183,6 +183,10 @@ class FusionConfig:
     p0_speed_scale_sigma: float = setting(0.02, "Prior std of that scale error k [-]", low=0.0)
     q_speed_scale_sigma: float = setting(4e-6, "Random walk of k per sample [-]: tyres wear and warm up "
                                          "slowly (1e-3 over 10 min at 100 Hz)", low=0.0)
+    speed_scale_after_s: float = setting(
+        10.0, "The scale is held this long after GNSS fixed the heading [s]: the first fixes settle "
+        "the velocity and the attitude, which a freed scale would trade against (CommonRoad's 14 s "
+        "lane change: slope within 2 sigma 90 -> 86 % with it freed at once)", low=0.0)
     speed_scale_floor_sigma: float = setting(
         0.004, "Added to the published scale's std [-]: a speed in 1 km/h steps is off by one amount "
         "for as long as it keeps a value, 0.4 % at 70 km/h, and the filter, which takes that offset "

@@ -187,6 +187,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
                        "speed_covariance_reopened": 0, "heading_initialised": 0,
                        "heading_restarted": 0}
         self.heading_sigma_at_init: float | None = None
+        self.t_heading_fixed = math.inf      # stamp of the fix that fixed the heading
 
     @property
     def initialized(self) -> bool:

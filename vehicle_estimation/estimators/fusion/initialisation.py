@@ -62,6 +62,7 @@ class FusionInitialisation:
     _stationary_source: Callable[[float], bool | None]
     _w_prev: np.ndarray | None
     _held_direction: Callable[..., np.ndarray]
+    t_heading_fixed: float
     _update: Callable[..., int]
 
     def _align_step(self, t: float, f: np.ndarray, w: np.ndarray) -> None:
@@ -257,4 +258,5 @@ class FusionInitialisation:
         self.heading_sigma_at_init = sig_psi
         self.events["heading_initialised"] += 1
         self.status = STATUS_RUNNING
+        self.t_heading_fixed = t
         return True

@@ -40,6 +40,7 @@ class FusionOutputs:
 
     config: FusionConfig
     status: str
+    t_heading_fixed: float
     _v: np.ndarray
     _w_lp: np.ndarray
     _w_nh: np.ndarray
@@ -102,8 +103,11 @@ class FusionOutputs:
     @property
     def speed_scale_held(self) -> bool:
         """Whether the filter takes the speed's scale as known, its variance a consider term of the
-        published velocity and position (``estimate_speed_scale`` while no GNSS position aids)."""
-        return self.config.estimate_speed_scale and not (self.gnss_aided and self.status == STATUS_RUNNING)
+        published velocity and position (``estimate_speed_scale`` while no GNSS position aids,
+        and for ``speed_scale_after_s`` after GNSS fixed the heading)."""
+        c = self.config
+        settled = self._t is not None and self._t - self.t_heading_fixed >= c.speed_scale_after_s
+        return c.estimate_speed_scale and not (self.gnss_aided and self.status == STATUS_RUNNING and settled)
 
     def _note_speed(self, t: float, speed: float, variance: float) -> None:
         """A CAN speed at stamp ``t`` as reported, once aligned (before, the forward axis is not
