@@ -180,6 +180,22 @@ def test_the_speeds_scale_is_applied_beyond_what_a_quantised_speed_explains():
     assert speed_scale_at(history, 4.0 + 60.0) == 1.0  # stale
 
 
+@pytest.mark.parametrize("estimated", [False, True])
+def test_the_fusion_always_advertises_the_speeds_scale(estimated):
+    """The state and mass nodes subscribe to ``estimation/speed_scale`` whatever the fusion's
+    settings, and a replay's start-up waits until every subscription has its publisher: with
+    ``fusion.estimate_speed_scale`` off the fusion still advertises the topic (it hung a DDS
+    replay at start-up once), and publishes on it only where the scale is estimated."""
+    node = FusionNode(parameter_overrides=[Parameter("fusion.estimate_speed_scale", value=estimated)])
+    try:
+        advertised = {name for name, _ in node.get_publisher_names_and_types_by_node(node.get_name(),
+                                                                                    node.get_namespace())}
+        assert "/" + topics.SPEED_SCALE in advertised, sorted(advertised)
+        assert node.ekf.config.estimate_speed_scale is estimated
+    finally:
+        node.destroy_node()
+
+
 def test_before_the_fusion_speaks_the_imu_is_turned_by_the_vehicles_mounting():
     """Until the fusion publishes its bias and refined mounting (or without a fusion node), a
     node still turns imu/data into base_link by ``vehicle.imu_mounting_rpy``: an IMU facing
