@@ -439,7 +439,7 @@ class StateNode(EstimatorNode):
         self.set_missing("vehicle/joint_states", not fresh)
         if fresh:
             steer = self.chassis.steering_wheel_angle / self.vehicle.steering_ratio
-            wheels = self.chassis.wheel_speeds / speed_scale_at(self.speed_scale, t)
+            wheels = self.chassis.wheel_speeds
         else:
             steer, wheels = 0.0, np.full(4, np.nan)
         if not math.isfinite(steer):
@@ -473,7 +473,7 @@ class StateNode(EstimatorNode):
             + (0.0 if self._vx_measured or not self.core.initialised else self.dead_reckoning_noise_density))
         inputs = VehicleInputs(
             steer_angle=steer,
-            wheel_speeds=wheels,
+            wheel_speeds=wheels / speed_scale_at(self.speed_scale, t),
             slope=0.0 if math.isnan(slope) else slope,
             mass=self._upstream(self.mass, t, self.vehicle.mass, MASS_INPUT),
         )

@@ -244,12 +244,12 @@ class FusionOutputs:
         variance is not published below the speed's own stated variance. (The filter weighs that
         speed as correlated over ``speed_error_correlation_s`` and computed 0.045 m/s on FASTSim's
         car without GNSS, where a 1 km/h step leaves 0.07 m/s: NEES 2.5.)"""
-        _, H = self._body_speed_rows([0, 1, 2], (self.config.estimate_mounting,) * 2)
+        v_body, H = self._body_speed_rows([0, 1, 2], (self.config.estimate_mounting,) * 2)
         cov = H @ self._P @ H.T
         if self._speed_variance is not None and not self.gnss_aided and cov[0, 0] < self._speed_variance:
             cov[0, 0] = self._speed_variance
         if self.speed_scale_held:          # the speed's held scale error, k v_x
-            cov[0, 0] += self.speed_scale_variance * float(self.velocity_body[0]) ** 2
+            cov[0, 0] += self.speed_scale_variance * float(v_body[0]) ** 2
         return cov
 
     def _base_attitude_jacobian(self) -> np.ndarray:
