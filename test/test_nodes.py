@@ -180,6 +180,49 @@ def test_the_speeds_scale_is_applied_beyond_what_a_quantised_speed_explains():
     assert speed_scale_at(history, 4.0 + 60.0) == 1.0  # stale
 
 
+def test_the_speeds_scale_left_unapplied_is_its_error_variance():
+    """What a consumer adds to its speed's variance: the scale's variance plus the square of
+    the part it did not apply, so that within 2 sigma of 1 (nothing applied) a real 1 % is
+    still covered, and a scale applied in full leaves only its variance. Nothing without a
+    fresh estimate."""
+    from vehicle_estimation.ros.runtime.upstream import (
+        StampedValue, UpstreamHistory, speed_scale_at, speed_scale_error_variance)
+
+    history = UpstreamHistory()
+    assert speed_scale_error_variance(history, 10.0) == 0.0
+    sigma = 0.0041
+    for i, k in enumerate((0.0, 0.008, 0.03)):
+        history.add(float(i), StampedValue(float(i), 1.0 + k, sigma ** 2, True))
+        left = k - (speed_scale_at(history, float(i)) - 1.0)
+        assert speed_scale_error_variance(history, float(i)) == pytest.approx(sigma ** 2 + left ** 2)
+    assert speed_scale_error_variance(history, 1.0) == pytest.approx(sigma ** 2 + 0.008 ** 2)
+    assert speed_scale_error_variance(history, 2.0) < 2.0 * sigma ** 2
+    # held at its prior without GNSS: a 3 % tyre error lies within 2 sigma of the speed
+    history.add(3.0, StampedValue(3.0, 1.0, 0.02 ** 2, False))
+    assert 0.03 < 2.0 * math.sqrt(speed_scale_error_variance(history, 3.0))
+    assert speed_scale_error_variance(history, 3.0 + 60.0) == 0.0
+
+
+def test_a_speed_carrying_its_held_scale_is_still_a_measured_speed():
+    """Without GNSS a wheel-aided vx carries the held scale's 2 % (0.7 m/s at 122 km/h): the
+    slope and mass nodes must still take it as a speed (at a flat 0.5 m/s they rejected 8243
+    of the demo's state messages and 7918 odometry ones), and still refuse a dead-reckoned vx,
+    whose uncertainty grows without bound (a flat 2.5 % allowance let one through: the Stanford
+    drive's sideslip RMSE 0.340 -> 0.425 deg)."""
+    from vehicle_estimation.ros.conversions import MAX_MEASURED_SPEED_STD, measured_speed
+
+    held = 0.0204 ** 2                     # the fusion's prior with its floor, without GNSS
+    assert measured_speed(34.0, 0.05 ** 2 + held * 34.0 ** 2, held)
+    assert not measured_speed(34.0, 0.05 ** 2 + held * 34.0 ** 2)     # not without the scale
+    assert measured_speed(5.0, 0.3 ** 2, held)
+    # a dead-reckoned vx carries the scale's term too (the state node adds it to every vx), so
+    # its own growing uncertainty is what is judged, at town speed and on the motorway
+    assert not measured_speed(5.0, 0.6 ** 2 + held * 5.0 ** 2, held)
+    assert not measured_speed(30.0, 0.6 ** 2 + held * 30.0 ** 2, held)
+    assert measured_speed(30.0, math.nan) and measured_speed(30.0, 0.0)   # unknown: taken as measured
+    assert not measured_speed(1.0, (MAX_MEASURED_SPEED_STD * 1.01) ** 2)
+
+
 @pytest.mark.parametrize("estimated", [False, True])
 def test_the_fusion_always_advertises_the_speeds_scale(estimated):
     """The state and mass nodes subscribe to ``estimation/speed_scale`` whatever the fusion's
@@ -388,8 +431,7 @@ def test_state_node_without_wheel_speeds_uses_vehicle_speed(fallback):
             # so no slope observer or mass filter takes this vx for a speed.
             std = math.sqrt(state[-1].twist.covariance[0])
             assert abs(vx - 20.0) < 2.0 * std and std > conversions.MAX_MEASURED_SPEED_STD
-            assert conversions.forward_speed_entry(state[-1]) is None
-            assert conversions.planar_velocity_entry(state[-1]) is None
+            assert not conversions.measured_speed(vx, state[-1].twist.covariance[0])
     finally:
         h.close()
 

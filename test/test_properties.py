@@ -274,9 +274,9 @@ def test_velocity_entries_equal_stamp_and_twist(msg_type, sec, nanosec, vx, vy):
     assert abs(t - (sec + nanosec * 1e-9)) <= 1e-6
     for m in (msg, view):
         entry = forward_speed_entry(m)
-        assert entry == ((t, (t, vx)) if math.isfinite(vx) else None)
+        assert entry == ((t, (t, vx, 0.0)) if math.isfinite(vx) else None)
         entry2 = planar_velocity_entry(m)
-        assert entry2 == ((t, (t, vx, vy)) if math.isfinite(vx) and math.isfinite(vy) else None)
+        assert entry2 == ((t, (t, vx, vy, 0.0)) if math.isfinite(vx) and math.isfinite(vy) else None)
 
 
 # -------------------------------------------------------------------- CDR views
@@ -353,7 +353,10 @@ def test_cdr_views_equal_rclpy_deserialisation(msg_type, data):
             for field in dataclasses.fields(expected[1]):
                 assert same_float(getattr(got[1], field.name), getattr(expected[1], field.name))
     if msg_type in (Odometry, TwistWithCovarianceStamped):
-        assert forward_speed_entry(view) == forward_speed_entry(reference)
+        got, want = forward_speed_entry(view), forward_speed_entry(reference)
+        assert (got is None) == (want is None)
+        if got is not None:
+            assert got[0] == want[0] and all(same_float(a, b) for a, b in zip(got[1], want[1]))
 
 
 # ============================================================================ 2. cores

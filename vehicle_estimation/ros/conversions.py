@@ -197,28 +197,32 @@ def speed_reading(msg: Any) -> tuple[float, float] | None:
 
 
 #: Largest published vx standard deviation [m/s] of a speed that an observer may take as a
-#: measurement. A wheel- or CAN-aided vx has a few cm/s; a vx the state node dead-reckons from
-#: the accelerometer has its growing uncertainty (and carries the very grade and bias an observer
-#: would estimate from it: a closed loop that runs away).
+#: measurement, once the speed's scale share is taken out (:func:`measured_speed`). A wheel- or
+#: CAN-aided vx has a few cm/s; a vx the state node dead-reckons from the accelerometer has its
+#: growing uncertainty (and carries the very grade and bias an observer would estimate from it:
+#: a closed loop that runs away).
 MAX_MEASURED_SPEED_STD = 0.5
 
 
-def _measured(msg: Any) -> bool:
-    """Whether the twist's vx variance says measured (NaN or <= 0: unknown, taken as measured)."""
-    var = msg.twist.covariance[0]
-    return not (math.isfinite(var) and var > MAX_MEASURED_SPEED_STD ** 2)
+def measured_speed(vx: float, variance: float, scale_error_variance: float = 0.0) -> bool:
+    """Whether a published vx is a measured speed, not a dead-reckoned one: its variance (NaN or
+    <= 0: unknown, taken as measured), less what the speed's scale adds to a measured vx (the
+    wheels' rolling radius, ``estimation/speed_scale``: 2 % of the speed without GNSS, so 0.7 m/s
+    at 122 km/h), within :data:`MAX_MEASURED_SPEED_STD`. Told apart at the lookup, where the
+    scale is known, not when the message arrives."""
+    if not (math.isfinite(variance) and variance > 0.0):
+        return True
+    return variance - scale_error_variance * vx * vx <= MAX_MEASURED_SPEED_STD ** 2
 
 
-def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float]] | None:
-    """``(stamp, (stamp, vx))`` of an Odometry or TwistWithCovarianceStamped, for a history.
-
-    Both carry the body-frame forward speed in ``twist.twist.linear.x``. A vx whose variance
-    exceeds :data:`MAX_MEASURED_SPEED_STD` squared (dead reckoning) is no entry.
-    """
+def forward_speed_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
+    """``(stamp, (stamp, vx, vx variance))`` of an Odometry or TwistWithCovarianceStamped, for a
+    history. Both carry the body-frame forward speed in ``twist.twist.linear.x``; whether it is
+    measured is the reader's to ask (:func:`measured_speed`)."""
     stamp = msg.header.stamp
     t = stamp_to_sec(stamp)
     v = msg.twist.twist.linear.x
-    return (t, (t, v)) if math.isfinite(v) and _measured(msg) else None
+    return (t, (t, v, float(msg.twist.covariance[0]))) if math.isfinite(v) else None
 
 
 def odometry_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
@@ -257,10 +261,10 @@ def lateral_gravity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] 
     return (t, (t, share, variance))
 
 
-def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float]] | None:
-    """``(stamp, (stamp, vx, vy))`` of a TwistWithCovarianceStamped (the vehicle-state
-    node's output), for a history; none for a dead-reckoned vx (as :func:`forward_speed_entry`)."""
+def planar_velocity_entry(msg: Any) -> tuple[float, tuple[float, float, float, float]] | None:
+    """``(stamp, (stamp, vx, vy, vx variance))`` of a TwistWithCovarianceStamped (the
+    vehicle-state node's output), for a history (as :func:`forward_speed_entry`)."""
     stamp = msg.header.stamp
     t = stamp_to_sec(stamp)
     vx, vy = msg.twist.twist.linear.x, msg.twist.twist.linear.y
-    return (t, (t, vx, vy)) if math.isfinite(vx) and math.isfinite(vy) and _measured(msg) else None
+    return (t, (t, vx, vy, float(msg.twist.covariance[0]))) if math.isfinite(vx) and math.isfinite(vy) else None

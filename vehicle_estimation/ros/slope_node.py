@@ -40,7 +40,7 @@ from std_msgs.msg import Float64
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.registry import SLOPE_METHODS
 from vehicle_estimation.estimators.slope.road_slope import GradeSample
-from vehicle_estimation.ros.conversions import forward_speed_entry, planar_velocity_entry
+from vehicle_estimation.ros.conversions import forward_speed_entry, measured_speed, planar_velocity_entry
 from vehicle_estimation.ros.cdr import float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
@@ -52,6 +52,7 @@ from vehicle_estimation.ros.runtime.upstream import (
     companion_bytes,
     companion_value,
     is_fresh,
+    speed_scale_error_variance,
 )
 
 #: Variance published while no estimate exists yet: a 10 deg 1-sigma prior.
@@ -76,6 +77,7 @@ class SlopeNode(EstimatorNode):
         self.grade = UpstreamHistory()
         self.state_speed = UpstreamHistory()
         self.odom_speed = UpstreamHistory()
+        self.speed_scale = UpstreamHistory()
         self.can_speed: tuple[float, float] | None = None
         self._last_pub = -math.inf
 
@@ -91,6 +93,8 @@ class SlopeNode(EstimatorNode):
             self.subscribe_upstream(TwistWithCovarianceStamped, topics.VEHICLE_STATE, self.state_speed,
                                     planar_velocity_entry)
             self.subscribe_upstream(Odometry, topics.ODOMETRY, self.odom_speed, forward_speed_entry)
+            # what the wheels' radius adds to a measured speed's variance: not dead reckoning
+            self.subscribe_upstream(Vector3Stamped, topics.SPEED_SCALE, self.speed_scale, companion_value)
 
     def _config(self, prefix: str, defaults: object) -> object:
         """The ``<prefix>.*`` parameters as a config, declared on first use."""
@@ -117,11 +121,12 @@ class SlopeNode(EstimatorNode):
 
     def velocity_at(self, t: float) -> tuple[float, float] | None:
         """(vx, vy) for the observer: state node, else fusion (vy 0), else CAN (vy 0)."""
+        scale = speed_scale_error_variance(self.speed_scale, t)
         item = self.state_speed.at(t)
-        if item is not None and is_fresh(t, item[0]):
+        if item is not None and is_fresh(t, item[0]) and measured_speed(item[1], item[3], scale):
             return item[1], item[2]
         item = self.odom_speed.at(t)
-        if item is not None and is_fresh(t, item[0]):
+        if item is not None and is_fresh(t, item[0]) and measured_speed(item[1], item[2], scale):
             return item[1], 0.0
         if self.can_speed is not None and is_fresh(t, self.can_speed[0]):
             return self.can_speed[1], 0.0
@@ -164,7 +169,7 @@ class SlopeNode(EstimatorNode):
     def reset_estimators(self) -> None:
         self._make_core()
         self.bias.clear()
-        for history in (self.grade, self.state_speed, self.odom_speed):
+        for history in (self.grade, self.state_speed, self.odom_speed, self.speed_scale):
             history.clear()
         self.can_speed = None
         self._last_pub = -math.inf

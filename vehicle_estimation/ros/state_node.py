@@ -101,6 +101,7 @@ from vehicle_estimation.ros.runtime.upstream import (
     companion_value,
     is_fresh,
     speed_scale_at,
+    speed_scale_error_variance,
 )
 
 #: Where vx comes from, for /diagnostics ("vx source").
@@ -245,7 +246,8 @@ class StateNode(EstimatorNode):
             "accelerometer, whose bias and grade error no measurement checks: this acceleration "
             "error std goes into the vx process noise [m/s^2]", 0.0, 5.0)
         # Same white-noise equivalent: the published vx variance then grows as the drift does,
-        # and the slope and mass nodes stop taking that vx as a speed (MAX_MEASURED_SPEED_STD).
+        # and the slope and mass nodes stop taking that vx as a speed (conversions.measured_speed,
+        # which takes out the tyre radius's share that only a measured vx carries).
         self.dead_reckoning_noise_density = 2.0 * dead_reckoning_std ** 2 * GRADE_CORRELATION_S
         cornering_std = self.declare_float(
             "cornering_speed_accel_std", DEFAULT_CORNERING_ACCEL_STD,
@@ -523,6 +525,10 @@ class StateNode(EstimatorNode):
         # The twist covariance, row-major 6 x 6 over (vx, vy, vz, roll, pitch, yaw rate): the
         # filter's (vx, vy, r) block; vz, roll rate and pitch rate are not estimated (1e6).
         (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P[:3, :3].tolist()
+        # A wheel radius's error lasts: the filter, weighing each wheel sample as new, cannot see
+        # it. Added to a dead-reckoned vx too (which started from a wheel speed), so that the
+        # slope and mass nodes, taking it out again, tell dead reckoning by the filter's own.
+        p00 += speed_scale_error_variance(self.speed_scale, t) * float(x[0]) ** 2
         cov = (p00, p01, 0.0, 0.0, 0.0, p02,
                p10, p11, 0.0, 0.0, 0.0, p12,
                0.0, 0.0, 1e6, 0.0, 0.0, 0.0,

@@ -112,12 +112,27 @@ def speed_scale_at(history: UpstreamHistory, t: float) -> float:
     sigma the scale is not told apart from a quantised speed's lasting offset, or from the CAN
     speed's own scale where the wheels have another; nor does it jump in when it is. 1 without a
     fresh estimate: the speeds as they are."""
+    return _applied_speed_scale(history, t)[0]
+
+
+def speed_scale_error_variance(history: UpstreamHistory, t: float) -> float:
+    """The mean square of the scale error left in the speeds once :func:`speed_scale_at` is
+    divided out: the published scale's variance plus the square of the part the shrinkage did
+    not apply. It lasts (a tyre's radius), so a filter that weighs each wheel-speed sample as
+    independent cannot average it down: its consumer adds it, times the speed squared, to the
+    speed's published variance (a consider term). Without GNSS it is the fusion's prior, held.
+    0 without a fresh estimate (no fusion: nothing is known of it)."""
+    return _applied_speed_scale(history, t)[1]
+
+
+def _applied_speed_scale(history: UpstreamHistory, t: float) -> tuple[float, float]:
     item = history.at(t)
     if item is None or not is_fresh(t, item.stamp) or not item.variance >= 0.0:
-        return 1.0
+        return 1.0, 0.0
     k = item.value - 1.0
     shrink = 1.0 - 4.0 * item.variance / (k * k) if k != 0.0 else 0.0
-    return 1.0 + k * shrink if shrink > 0.0 else 1.0
+    applied = k * shrink if shrink > 0.0 else 0.0
+    return 1.0 + applied, item.variance + (k - applied) ** 2
 
 
 class FusionImuBias:
