@@ -247,7 +247,7 @@ class StateNode(EstimatorNode):
             "error std goes into the vx process noise [m/s^2]", 0.0, 5.0)
         # Same white-noise equivalent: the published vx variance then grows as the drift does,
         # and the slope and mass nodes stop taking that vx as a speed (conversions.measured_speed,
-        # which takes out the tyre radius's share that only a measured vx carries).
+        # once the tyre radius's share, which publish_state adds to every vx, is taken out).
         self.dead_reckoning_noise_density = 2.0 * dead_reckoning_std ** 2 * GRADE_CORRELATION_S
         cornering_std = self.declare_float(
             "cornering_speed_accel_std", DEFAULT_CORNERING_ACCEL_STD,
