@@ -320,9 +320,11 @@ class MassNode(EstimatorNode):
     def _speed_at(self, t: float) -> float | None:
         if self.speed_source == "wheel_speed":
             item = self.wheel_speed
+        elif self.speed_source == "fusion":
+            item = self.odom_speed.at(t)
         else:
-            item = (self.odom_speed if self.speed_source == "fusion" else self.state_speed).at(t)
-            if item is not None and self.speed_source != "fusion" and not self._measured(t, item):
+            item = self.state_speed.at(t)
+            if item is not None and not self._measured(t, item):
                 item = None
         if item is not None and is_fresh(t, item[0]):
             return item[1]
