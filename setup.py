@@ -34,7 +34,7 @@ setup(
             "torch==2.13.0",
             "safetensors",
         ],
-        "test": ["pytest", "hypothesis", "filterpy", "colcon-common-extensions", "mypy", "ruff", "commonroad-vehicle-models==3.0.2",
+        "test": ["pytest", "pytest-xdist", "hypothesis", "filterpy", "colcon-common-extensions", "mypy", "ruff", "commonroad-vehicle-models==3.0.2",
                  "fastsim==3.1.0", "wltp==0.1.2a0", "dask[distributed]>=2024.8", "numba>=0.60"],
         # Compiled filter kernels (numba): the same estimates, the state and fusion steps 5-18x faster.
         "fast": ["numba>=0.60"],

@@ -10,6 +10,8 @@ import os
 import tempfile
 from pathlib import Path
 
+import pytest
+
 _DOMAIN_CLAIM = None
 
 
@@ -20,9 +22,12 @@ def _claim_domain_id() -> int:
     return _DOMAIN_CLAIM.domain
 
 
-if "VEHICLE_ESTIMATION_TEST_DOMAIN" not in os.environ:
+# Each pytest-xdist worker claims its own: a node that outlives its test (a crash) cannot then
+# talk to the other worker's next one.
+_CLAIMANT = os.environ.get("PYTEST_XDIST_WORKER", "main")
+if os.environ.get("VEHICLE_ESTIMATION_TEST_DOMAIN_OWNER") != _CLAIMANT:
     os.environ["ROS_DOMAIN_ID"] = str(_claim_domain_id())
-    os.environ["VEHICLE_ESTIMATION_TEST_DOMAIN"] = os.environ["ROS_DOMAIN_ID"]
+    os.environ["VEHICLE_ESTIMATION_TEST_DOMAIN_OWNER"] = _CLAIMANT
 # Localhost-only discovery, over UDP on the loopback interface (the profile says why not over
 # rmw_fastrtps's LOCALHOST range, which adds shared memory). SYSTEM_DEFAULT makes the rmw take the
 # transports from the profile instead of configuring its own.
@@ -35,3 +40,19 @@ os.environ.pop("ROS_STATIC_PEERS", None)
 os.environ.setdefault("MPLBACKEND", "Agg")
 # Node logs and the launcher's persisted estimator state go to ROS_HOME: keep them out of ~/.ros.
 os.environ["ROS_HOME"] = tempfile.mkdtemp(prefix="vehicle_estimation_test_ros_home_")
+
+# Tests that start a live ROS graph run alone, the others side by side on every core
+# (test/dds_serial.py says why and how).
+pytest_plugins = ["dds_serial"]
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    """Spread the tests over the cores when pytest-xdist is installed and the command line
+    did not say otherwise (``-n 0`` runs them in one process)."""
+    from dds_serial import workers_wanted
+    if config.pluginmanager.hasplugin("xdist") and config.option.numprocesses is None \
+            and not hasattr(config, "workerinput"):
+        config.option.numprocesses = workers_wanted()
+        if config.option.dist == "no" and config.option.numprocesses:
+            config.option.dist = "loadscope"

@@ -25,6 +25,9 @@ from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 from vehicle_estimation.io.bagtools import rewrite_bag
 from vehicle_estimation.launcher.processes import NodeGroup
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 TS = get_typestore(Stores.ROS2_JAZZY)
 ESTIMATES = ("/estimation/odometry", "/estimation/vehicle_state", "/estimation/mass")
 #: The contract inputs as a recorder with its own names would write them.

@@ -16,6 +16,9 @@ import yaml
 
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 pytest.importorskip("distributed")
 
 DRIVE_S = 8.0

@@ -7,9 +7,12 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from vehicle_estimation.estimators.common import compiled
 
 
+@pytest.mark.dds
 def test_bench_cores_and_live_print_the_side_by_side_figures(tmp_path):
     out = tmp_path / "bench"
     proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "bench", "--sections", "cores,live",
@@ -34,6 +37,7 @@ def test_bench_cores_and_live_print_the_side_by_side_figures(tmp_path):
         assert "against the same maths in numpy" in report and "VB-ACKF, N = 10 (shipped): compiled" in report
 
 
+@pytest.mark.dds
 def test_the_in_process_floor_delivers_every_message_and_handles_none(tmp_path):
     """The pipeline section's floor: the same in-process replay with the handlers switched off
     reads, delivers and queues every message (lossless) but no node estimates anything; the

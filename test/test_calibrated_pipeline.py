@@ -30,6 +30,9 @@ from vehicle_estimation.sim.road import RoadSpec
 from vehicle_estimation.sim.scenario import Scenario, SensorConfig
 from vehicle_estimation.sim.simulate import simulate
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 SHIPPED = sorted(PARAMS_DIR.glob("*.yaml"))
 AUDI = load_vehicle_params(PARAMS_DIR / "audi_a4.yaml")

@@ -12,6 +12,9 @@ from pathlib import Path
 
 import pytest
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE_FILES = ("package.xml", "setup.py", "setup.cfg", "README.md", "resource", "params",
                  "vehicle_estimation")

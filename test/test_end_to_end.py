@@ -69,6 +69,7 @@ def replays(drive, tmp_path_factory):
     return results
 
 
+@pytest.mark.dds
 def test_replay_is_lossless(replays):
     _, stdout = replays[0]
     rows = [line.split() for line in stdout.splitlines() if line.startswith("/")]
@@ -78,6 +79,7 @@ def test_replay_is_lossless(replays):
     assert "lossless: True" in stdout
 
 
+@pytest.mark.dds
 def test_replaying_again_gives_identical_estimates(replays):
     whole, prefix = (_estimates(out) for out, _ in replays)
     expected = {"/estimation/odometry", "/estimation/imu", "/estimation/road_slope",
@@ -94,6 +96,7 @@ def test_replaying_again_gives_identical_estimates(replays):
         assert whole[topic][:n] == prefix[topic][:n], f"{topic} differs between two replays"
 
 
+@pytest.mark.dds
 def test_estimates_track_ground_truth(replays, tmp_path):
     out, _ = replays[0]
     proc = subprocess.run([sys.executable, "-m", "vehicle_estimation", "report", str(out),
@@ -108,6 +111,7 @@ def test_estimates_track_ground_truth(replays, tmp_path):
     assert list(tmp_path.glob("*.png"))
 
 
+@pytest.mark.dds
 def test_the_fusion_rates_carry_the_gyro_noise(replays):
     """``estimation/odometry``'s angular velocity and ``estimation/imu``'s are single compensated
     gyro samples: their covariance holds the gyro's noise as well as the bias estimate's (with
@@ -135,6 +139,7 @@ def test_the_fusion_rates_carry_the_gyro_noise(replays):
                                rtol=1e-12)
 
 
+@pytest.mark.dds
 def test_the_datum_says_where_odom_is_and_the_pose_variance_is_honest(drive, replays):
     """``estimation/datum`` is the first fix, sent once (transient local) when GNSS has fixed the
     heading; with it the report puts the truth in ``odom`` and the published position, heading
@@ -156,6 +161,7 @@ def test_the_datum_says_where_odom_is_and_the_pose_variance_is_honest(drive, rep
         assert checked[name]["within_2sigma"] >= 0.85 and 0.05 < checked[name]["nees"] < 2.0, (name, checked[name])
 
 
+@pytest.mark.dds
 def test_estimates_match_the_recorded_reference(replays):
     import replay_values
 
@@ -167,6 +173,7 @@ def test_estimates_match_the_recorded_reference(replays):
     assert not moved, f"estimates differ from {REFERENCE.name}:\n" + "\n".join(moved)
 
 
+@pytest.mark.dds
 def test_in_process_replay_records_the_same_bytes(drive, replays, tmp_path):
     """``replay --in-process``: the same nodes without DDS, the same estimates byte for byte,
     with the same log times, and the same lossless summary."""
@@ -181,6 +188,7 @@ def test_in_process_replay_records_the_same_bytes(drive, replays, tmp_path):
     assert replay_values.first_difference(dds, replay_values.recorded_estimates(out)) is None
 
 
+@pytest.mark.dds
 def test_numpy_maths_give_the_compiled_estimates(drive, replays, tmp_path):
     """The filters' numpy code (numba switched off) and the compiled kernels: the same recorded
     estimates to 1e-9 of each quantity's scale over the drive (sums may be ordered differently)."""

@@ -12,6 +12,9 @@ import pytest
 
 from vehicle_estimation.experiments.paper004_joint_soft_sensing import EXPERIMENTS, compare, format_comparison
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 
 def _groups(vy_mae: float, slope_mae: float, mass_mae: float | None) -> dict:
     groups = {

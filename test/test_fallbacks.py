@@ -88,12 +88,14 @@ def _read(bag: Path) -> tuple[dict[str, int], dict[str, dict[str, str]], dict[st
     return counts, diagnostics, {k: np.array(v) for k, v in series.items()}
 
 
+@pytest.mark.dds
 def test_every_estimate_is_published_without_gnss_and_wheel_speeds(replayed):
     counts, _, _ = _read(replayed)
     for topic in ESTIMATES:
         assert counts.get("/" + topic, 0) > 50, f"{topic}: {counts.get('/' + topic, 0)} messages"
 
 
+@pytest.mark.dds
 def test_diagnostics_name_each_fallback(replayed):
     _, diagnostics, _ = _read(replayed)
     assert diagnostics["fusion"]["heading source"].startswith("free")
@@ -117,6 +119,7 @@ def test_diagnostics_name_each_fallback(replayed):
     assert diagnostics["vehicle_state"]["vx source"].startswith("vehicle/speed")
 
 
+@pytest.mark.dds
 def test_the_fallbacks_estimate_what_they_should(replayed):
     _, _, s = _read(replayed)
     vx, truth_vx = s["vx"], s["truth_vx"]
@@ -132,6 +135,7 @@ def test_the_fallbacks_estimate_what_they_should(replayed):
     assert np.max(np.abs(mass[last_half, 1] / truth - 1.0)) < 0.10   # ... left for the truth
 
 
+@pytest.mark.dds
 def test_in_process_replay_records_the_same_bytes(bare, replayed, tmp_path):
     """The other sensor set of the in-process check (``test_end_to_end`` has the full one):
     every fallback runs, and ``--in-process`` still records what the DDS replay records."""
@@ -169,6 +173,7 @@ def test_without_vehicle_speed_the_fusion_navigates_on_the_wheel_speeds(wheels_o
     assert moving.sum() > 100 and math.sqrt(float(np.mean(error ** 2))) < 0.2
 
 
+@pytest.mark.dds
 def test_an_imu_turned_about_z_is_named_in_diagnostics(bare, replayed, tmp_path):
     """An IMU facing left in a car whose vehicle file says it faces forward reads gravity as a
     level one does; the fusion's yaw check, on the car's accelerations from vehicle/speed,

@@ -253,6 +253,7 @@ def test_baseline_kf_tracks_a_linear_single_track_model():
 
 
 @pytest.mark.skipif(not (STANFORD_DIR / "t.txt").is_file(), reason="Stanford data not available")
+@pytest.mark.dds
 def test_stanford_command_smoke(tmp_path, capfd):
     """`vehicle-estimation stanford` on the first 8 s: import, replay (ckf, assumed speed),
     baseline, table, JSON and PNG."""
@@ -287,6 +288,7 @@ def test_stanford_command_smoke(tmp_path, capfd):
 
 
 @pytest.mark.skipif(not (STANFORD_DIR / "t.txt").is_file(), reason="Stanford data not available")
+@pytest.mark.dds
 def test_stanford_command_with_a_wheel_dropout(tmp_path, capfd):
     """`--wheel-dropout 2:4` on the first 8 s with the AO-UKF: the wheel speeds are NaN for
     2 s, the node runs the no-speed filter from 3 to 5 s and the AO-UKF again by the end, and

@@ -15,6 +15,9 @@ import pytest
 
 from vehicle_estimation.ros import PIPELINE
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 
 def _children(pid: int) -> list[int]:
     out = []

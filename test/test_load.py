@@ -7,10 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
+
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
 
 IMU_RATE = 1000.0
 TICK_S = 0.1             # the replay's default tick

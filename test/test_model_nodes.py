@@ -94,11 +94,13 @@ def _start_mass_node(stem: Path) -> None:
     node.destroy_node()
 
 
+@pytest.mark.dds
 def test_shipped_transformer_starts_the_mass_node(ros, tmp_path):
     _start_mass_node(_copy_transformer(tmp_path))
 
 
 @pytest.mark.parametrize("damage", ["flipped weight bit", "hash edited to match", "wrong shape", "pickle"])
+@pytest.mark.dds
 def test_damaged_transformer_files_stop_the_mass_node(ros, tmp_path, damage):
     stem = _copy_transformer(tmp_path)
     weights, meta = stem.with_suffix(".safetensors"), stem.with_suffix(".json")
@@ -134,6 +136,7 @@ def _start_state_node(correction: str) -> StateNode:
         Parameter("filter", value="aoukf"), Parameter("aoukf_correction", value=correction)])
 
 
+@pytest.mark.dds
 def test_state_node_loads_the_shipped_gabpnn_and_can_run_without(ros):
     node = _start_state_node("auto")
     assert node.core.correction is not None
@@ -144,6 +147,7 @@ def test_state_node_loads_the_shipped_gabpnn_and_can_run_without(ros):
 
 
 @pytest.mark.parametrize("damage", ["truncated", "wrong shape", "object array"])
+@pytest.mark.dds
 def test_damaged_gabpnn_files_stop_the_state_node(ros, tmp_path, damage):
     path = tmp_path / "weights.npz"
     if damage == "truncated":

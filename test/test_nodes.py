@@ -28,6 +28,9 @@ from vehicle_estimation.ros.slope_node import SlopeNode
 from vehicle_estimation.ros.state_node import StateNode
 from vehicle_estimation.ros.stamps import stamp_ns
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 G = 9.80665
 T0 = 1_700_000_000.0
 

@@ -37,6 +37,7 @@ def test_replace_section_detects_staleness_and_missing_markers():
         replace_section("no markers here", f"{BEGIN}\n{END}\n")
 
 
+@pytest.mark.dds
 def test_every_declared_parameter_is_documented_from_one_source():
     """Each parameter's description comes from its ``setting()`` (or the node's own declaration),
     never the ``Class.field`` stand-in of an undocumented field."""

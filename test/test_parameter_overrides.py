@@ -21,6 +21,9 @@ from vehicle_estimation.ros.runtime.parameters import ParameterError  # noqa: E4
 from vehicle_estimation.ros.slope_node import SlopeNode  # noqa: E402
 from vehicle_estimation.ros.state_node import StateNode  # noqa: E402
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 PARAMS_DIR = Path(__file__).resolve().parents[1] / "params"
 #: (node class, selector, every method it offers)
 NODES = ((FusionNode, None, (None,)), (StateNode, "filter", ("vbackf", "ckf", "aoukf")),

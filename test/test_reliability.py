@@ -38,6 +38,9 @@ from vehicle_estimation.ros.runtime.upstream import companion
 from vehicle_estimation.ros.slope_node import SlopeNode
 from vehicle_estimation.ros.state_node import StateNode
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 NAN, INF = math.nan, math.inf
 KMH_400 = 400.0 / 3.6
 ORIGIN = (55.78, 12.52, 50.0)

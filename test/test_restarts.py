@@ -18,6 +18,9 @@ from rosbags.typesys import Stores, get_typestore
 from vehicle_estimation.ros.persistence import StateFileError, load_state, save_state
 from vehicle_estimation.sim import scenario_by_name, simulate, write_bag
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 PRIOR_KG = 1000.0     # params/estimation.yaml: mass.initial_mass (paper 003)
 
 

@@ -16,6 +16,9 @@ from vehicle_estimation.paths import params_file
 from vehicle_estimation.validation import baselines
 from vehicle_estimation.contract.vehicle import load_vehicle_params
 
+# a live ROS graph: runs alone (test/dds_serial.py)
+pytestmark = pytest.mark.dds
+
 VEHICLE = load_vehicle_params(params_file("sedan_d_class"))
 G = VEHICLE.gravity
 
