@@ -803,12 +803,9 @@ def test_gnss_observes_the_speeds_scale_error(drive):
     assert learnt_rmse < 0.1 and taken_rmse > 0.25, (learnt_rmse, taken_rmse)
 
 
-def test_without_gnss_the_speeds_scale_is_held_and_its_prior_is_in_the_velocity():
-    """Without GNSS only the accelerometer would tell the scale, through its own bias: a pull-away
-    with an unknown 0.05 m/s^2 bias reads as a scale error (a 36 t truck learnt 1.18). The scale
-    is a consider state then: it keeps its value, and its prior reaches the published velocity,
-    which a speed 3 % high then lies within 2 sigma of."""
-    ekf = FusionEKF(FusionConfig(estimate_speed_scale=True, p0_accel_bias_sigma=0.05))
+def _pull_away_on_speeds_3_percent_high(ekf: FusionEKF) -> float:
+    """40 s without GNSS: standstill, 1 m/s^2 to 20 m/s, cruise; the CAN speed 3 % high and the
+    accelerometer 0.05 m/s^2 off. The true final speed."""
     f_level, w = _static_imu()
     step, speed = 0.005, 0.0
     for i in range(int(40.0 / step)):
@@ -818,11 +815,49 @@ def test_without_gnss_the_speeds_scale_is_held_and_its_prior_is_in_the_velocity(
             ekf.update_speed(t, 1.03 * speed, 0.01)
         ekf.process_imu(t, f_level + np.array([accel + 0.05, 0.0, 0.0]), w)
         speed = min(20.0, speed + accel * step)
+    return speed
+
+
+def test_without_gnss_the_speeds_scale_is_held_and_its_prior_is_in_the_velocity():
+    """Without GNSS only the accelerometer would tell the scale, through its own bias: a pull-away
+    with an unknown 0.05 m/s^2 bias reads as a scale error (a 36 t truck learnt 1.18). The scale
+    is a consider state then: it keeps its value, and its prior reaches the published velocity,
+    which a speed 3 % high then lies within 2 sigma of."""
+    ekf = FusionEKF(FusionConfig(estimate_speed_scale=True, p0_accel_bias_sigma=0.05))
+    speed = _pull_away_on_speeds_3_percent_high(ekf)
     assert ekf.navigating and not ekf.gnss_aided
     assert ekf.speed_scale == 1.0
     assert ekf.speed_scale_variance == pytest.approx(0.02 ** 2 + 0.004 ** 2, rel=1e-3)   # and its walk
     error, sigma = ekf.velocity_body[0] - speed, math.sqrt(ekf.velocity_body_covariance[0, 0])
     assert 0.5 < error < 2.0 * sigma, (error, sigma)
+
+
+def test_a_scale_resumed_from_an_earlier_drive_corrects_the_speed_without_gnss():
+    """The same drive as above, started from the scale an earlier drive with GNSS learnt
+    (``resume_speed_scale``; a fusion node persists it): held as before, but at 1.03 with the
+    earlier sigma plus ``speed_scale_resume_sigma``, so the speed no longer reads 3 % high; a
+    reset (a bag loop) starts from it again. Bad values are refused, and only before the first
+    sample."""
+    config = FusionConfig(estimate_speed_scale=True, p0_accel_bias_sigma=0.05)
+    ekf = FusionEKF(config)
+    resumed = ekf.resume_speed_scale(1.03, 0.002 ** 2)
+    assert resumed == pytest.approx(0.002 ** 2 + config.speed_scale_resume_sigma ** 2)
+    assert ekf.speed_scale == pytest.approx(1.03) and ekf.speed_scale_filter_variance == pytest.approx(resumed)
+    speed = _pull_away_on_speeds_3_percent_high(ekf)
+    assert ekf.navigating and not ekf.gnss_aided and ekf.speed_scale == pytest.approx(1.03)
+    error, sigma = ekf.velocity_body[0] - speed, math.sqrt(ekf.velocity_body_covariance[0, 0])
+    assert abs(error) < 0.1 and abs(error) < 2.0 * sigma, (error, sigma)     # 0.6 m/s high when not resumed
+    with pytest.raises(ValueError, match="before the first sample"):
+        ekf.resume_speed_scale(1.0, 0.0)
+    ekf.reset()
+    assert ekf.speed_scale == pytest.approx(1.03) and ekf.speed_scale_filter_variance == pytest.approx(resumed)
+    fresh = FusionEKF(config)
+    assert fresh.resume_speed_scale(1.03, 1.0) == pytest.approx(0.02 ** 2)      # never above the prior
+    for scale, variance in ((float("nan"), 0.0), (1.5, 0.0), (1.0, -1.0)):
+        with pytest.raises(ValueError, match="not a speed scale"):
+            FusionEKF(config).resume_speed_scale(scale, variance)
+    with pytest.raises(ValueError, match="estimate_speed_scale"):
+        FusionEKF(FusionConfig()).resume_speed_scale(1.03, 0.0)
 
 
 def test_without_gnss_the_position_carries_the_speed_offset_that_lasts_while_its_value_does():

@@ -1,5 +1,6 @@
-"""Restarts: kill -9 a node in the middle of a replay; the launcher respawns it and the mass
-node resumes from its persisted estimate and covariance, not from its prior."""
+"""Restarts and persisted state: kill -9 a node in the middle of a replay; the launcher respawns
+it and the mass node resumes from its persisted estimate and covariance, not from its prior. The
+fusion's learnt speed scale starts the next drive."""
 
 from __future__ import annotations
 
@@ -150,3 +151,42 @@ def test_state_file_is_atomic_and_validated(tmp_path):
         path.write_text(damaged)
         with pytest.raises(StateFileError):
             load_state(path, "mass/rls")
+
+
+def test_the_fusion_resumes_its_speed_scale_and_refuses_a_state_that_is_not_one(tmp_path):
+    """The fusion's ``persist.path`` (``run`` and ``replay --state-dir`` set it): a drive starts
+    from the scale an earlier one learnt, with the earlier variance plus the resume term; a file
+    without a variance, for another vehicle, or with a scale no tyre gives is refused, counted
+    and named, and the fusion starts from its prior."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from rosharness import init_rclpy, vehicle_overrides
+
+    from vehicle_estimation.estimators.fusion.config import FusionConfig
+    from vehicle_estimation.ros.fusion_node import FusionNode
+
+    path = tmp_path / "fusion_root.json"
+
+    def start():
+        return FusionNode(parameter_overrides=vehicle_overrides() + [
+            Parameter("fusion.estimate_speed_scale", value=True), Parameter("persist.path", value=str(path))])
+
+    init_rclpy()
+    try:
+        save_state(path, "fusion/speed_scale", 5.0, {"scale": 1.03, "variance": 1e-6}, vehicle="sedan_d_class")
+        node = start()
+        resume = FusionConfig().speed_scale_resume_sigma
+        assert node.ekf.speed_scale == pytest.approx(1.03)
+        assert node.ekf.speed_scale_filter_variance == pytest.approx(1e-6 + resume ** 2)
+        assert any("resumed the speed scale 1.0300" in e for e in node.health.events), node.health.events
+        node.destroy_node()
+        for state, vehicle in (({"scale": 1.03}, "sedan_d_class"), ({"scale": 1.03, "variance": 1e-6}, "heavy_truck"),
+                               ({"scale": 1.5, "variance": 0.0}, "sedan_d_class")):
+            save_state(path, "fusion/speed_scale", 5.0, state, vehicle=vehicle)
+            node = start()
+            assert node.ekf.speed_scale == 1.0 and node.ekf.speed_scale_filter_variance == pytest.approx(0.02 ** 2)
+            assert node.health.rejected["persist:unusable_state_file"] == 1, state
+            assert any("ignoring persisted speed scale" in e for e in node.health.events), node.health.events
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()

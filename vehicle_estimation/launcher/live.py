@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from vehicle_estimation.launcher.options import add_node_options, add_remap_option, node_group
+from vehicle_estimation.launcher.options import add_node_options, add_remap_option, node_group, persisted_state_overrides
 
 
 def default_state_dir() -> str:
@@ -31,7 +31,8 @@ def default_state_dir() -> str:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_node_options(p)
     p.add_argument("--state-dir", default=default_state_dir(),
-                   help="where the mass node persists its estimate, so that a restart resumes it "
+                   help="where the mass node persists its estimate (a restart resumes it) and the "
+                        "fusion the speed scale it learnt (the next drive starts from it) "
                         "(default: $ROS_HOME/vehicle_estimation, else ~/.ros/vehicle_estimation); "
                         "'' turns persistence off")
     add_remap_option(p, "ROS remapping given to every node as -r FROM:=TO (e.g. imu/data:=/sensors/imu)")
@@ -43,9 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     overrides = {}
     if args.state_dir:
-        # One state file per namespace: two vehicles on one computer never share an estimate.
-        ns = args.namespace.strip("/").replace("/", "_") or "root"
-        overrides["mass"] = {"persist.path": str(Path(args.state_dir) / f"mass_{ns}.json")}
+        overrides.update(persisted_state_overrides(Path(args.state_dir), args.namespace))
     group = node_group(args, overrides, remaps=args.remap)
     if args.in_process:
         return run_in_process(group)

@@ -87,3 +87,12 @@ def node_group_factory(namespace: str, leading: Sequence[Path] = ()) -> NodeGrou
         return NodeGroup(list(leading) + list(params), namespace=namespace, overrides=overrides or {},
                          log_dir=log_dir)
     return build
+
+
+def persisted_state_overrides(state_dir: Path, namespace: str) -> dict[str, dict[str, str]]:
+    """The nodes' state files under ``state_dir`` (``persist.path``): the mass node's estimate,
+    the fusion's learnt speed scale. One pair per namespace: two vehicles on one computer never
+    share an estimate."""
+    ns = namespace.strip("/").replace("/", "_") or "root"
+    return {"mass": {"persist.path": str(Path(state_dir) / f"mass_{ns}.json")},
+            "fusion": {"persist.path": str(Path(state_dir) / f"fusion_{ns}.json")}}

@@ -43,6 +43,7 @@ from tqdm import tqdm
 
 from vehicle_estimation.contract import topics
 from vehicle_estimation.io.msgconvert import jazzy_typestore, ros1_to_cdr
+from vehicle_estimation.launcher.options import persisted_state_overrides
 from vehicle_estimation.launcher.processes import claim_domain_id
 from vehicle_estimation.launcher.replay_driver import (
     ReplayDriver,
@@ -165,7 +166,8 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
            tick_s: float = DEFAULT_TICK_S, progress: bool = True, startup_timeout: float = 60.0,
            stall_timeout: float = 60.0,
            tick_callback: Callable[[float], None] | None = None,
-           remap: dict[str, str] | None = None, in_process: bool = False) -> ReplayStats:
+           remap: dict[str, str] | None = None, in_process: bool = False,
+           state_dir: Path | None = None) -> ReplayStats:
     """Play ``bag`` through nodes started by ``group_factory(overrides)``; record to ``out``.
 
     ``remap``: ``{FROM: TO}`` pairs as ``--remap FROM:=TO`` gives them, the contract topic on
@@ -174,6 +176,10 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
 
     ``in_process``: the same nodes, with the same parameters, in this process without DDS
     (:mod:`.replay_in_process`); the recorded estimates are the same bytes.
+
+    ``state_dir``: the nodes resume from the state files there and leave theirs (the mass, the
+    fusion's speed scale), as ``run`` does under ``--state-dir``: bags replayed one after the
+    other as a vehicle's consecutive drives. None: a fresh directory, removed at the end.
 
     ``tick_callback(bag_seconds_done)`` is called after every tick (the benchmark samples
     memory with it).
@@ -187,12 +193,16 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
     except ValueError as exc:
         raise ReplayError(str(exc)) from None
     overrides = release_delays(tick_s)
-    # A fresh state file per replay: a respawned mass node resumes from it, while a new replay
-    # never inherits another run's estimate (that would break replay determinism). Nothing is
-    # respawned in one process, where the file (an fsync a second of bag) would only cost time.
-    state_dir = Path(tempfile.mkdtemp(prefix="vehicle_estimation_replay_"))
-    if not in_process:
-        overrides.setdefault("mass", {})["persist.path"] = str(state_dir / "mass_state.json")
+    # Without a state_dir, fresh state files per replay: a respawned node resumes from them,
+    # while a new replay never inherits another run's estimate (that would break replay
+    # determinism). Nothing is respawned in one process, where the files (an fsync a second of
+    # bag) would only cost time.
+    keep_state = state_dir is not None
+    if state_dir is None:
+        state_dir = Path(tempfile.mkdtemp(prefix="vehicle_estimation_replay_"))
+    if keep_state or not in_process:
+        for node, values in persisted_state_overrides(state_dir, namespace).items():
+            overrides.setdefault(node, {}).update(values)
     writer = None
     if out is not None:
         if out.exists():
@@ -291,7 +301,8 @@ def replay(bag: Path, out: Path | None, group_factory, *, namespace: str = "/",
             engine.close(stats)
         else:
             group.stop()
-        shutil.rmtree(state_dir, ignore_errors=True)
+        if not keep_state:
+            shutil.rmtree(state_dir, ignore_errors=True)
         if writer is not None:
             writer.close()
         if claim is not None:
@@ -362,6 +373,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--in-process", action="store_true",
                    help="run the nodes in this process without DDS (the same estimates, on one core at about "
                         "half the CPU; node logs go to this process's stderr)")
+    p.add_argument("--state-dir", default=None,
+                   help="resume the mass and the fusion's learnt speed scale from the state files here and "
+                        "leave them there (as `run --state-dir`): replay bags one after the other as a "
+                        "vehicle's consecutive drives; default: a fresh directory per replay")
     add_remap_option(p, "play a bag topic as a contract topic, ROS-style CONTRACT:=BAG_TOPIC (e.g. "
                         "imu/data:=/sensors/imu; the reverse order is taken too)")
     add_node_options(p)
@@ -383,7 +398,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         stats = replay(Path(args.bag), record, lambda ov: node_group(args, ov, log_dir),
                        namespace=args.namespace, tick_s=args.tick, progress=not args.quiet,
-                       remap=dict(args.remap), in_process=args.in_process)
+                       remap=dict(args.remap), in_process=args.in_process,
+                       state_dir=Path(args.state_dir) if args.state_dir else None)
     except ReplayError as exc:
         print(f"replay failed: {exc}", file=sys.stderr)
         return 1

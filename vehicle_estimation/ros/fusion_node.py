@@ -21,6 +21,11 @@ fixes show the heading) every output is still published once the filter has alig
 ``odom`` is then the pose at alignment with a free heading, the position is dead-reckoned and
 its covariance grows, and ``/diagnostics`` says so (``heading source``, ``position source``
 and a ``missing`` entry).
+
+Persistence: with ``persist.path`` set (the launcher sets it: ``run`` under ``--state-dir``,
+``replay --state-dir``) the learnt speed scale and its variance are saved every
+``persist.period_s`` of message time, and the next start, the next drive too, resumes from them
+(:meth:`FusionEKF.resume_speed_scale`): a tyre's radius outlives a drive.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ from vehicle_estimation.ros.conversions import MAX_SPEED, MalformedMessage, chas
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.spin import run_node
 from vehicle_estimation.ros.cdr import StampedLayout
+from vehicle_estimation.ros.persistence import PersistedState
 from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S, sec_to_ns, stamp_ns, stamp_to_sec
 from vehicle_estimation.ros.runtime.upstream import companion_bytes
 
@@ -76,6 +82,16 @@ class FusionNode(EstimatorNode):
         self.odom_frame = self.declare_str("odom_frame", topics.ODOM_FRAME, "ENU world frame id")
 
         self.ekf = FusionEKF(config)
+        # The tyres' rolling radius outlives a drive: the speed's scale that GNSS taught one drive
+        # starts the next (without GNSS nothing else can teach it).
+        self.persisted = PersistedState(self, self.declare_str(
+            "persist.path", "", "File the CAN speed's learnt scale (fusion.estimate_speed_scale) is saved "
+            "to and resumed from, in the next drive too; empty: off. The launcher sets it"),
+            "fusion/speed_scale", self.vehicle.name,
+            self.declare_float("persist.period_s", 10.0, "Save period on the message clock [s]", 0.01, 3600.0),
+            "speed scale")
+        if config.estimate_speed_scale:
+            self._resume_speed_scale()
         # The mounting states refine a few degrees; a nominal yaw tens of degrees off is named.
         self.yaw_check = MountingYawCheck(self.vehicle.imu_mounting_rpy)
         self.origin: LocalTangentPlane | None = None
@@ -255,8 +271,24 @@ class FusionNode(EstimatorNode):
             # has halved its prior's sigma
             variance = ekf.speed_scale_variance
             observed = variance <= (0.5 * ekf.config.p0_speed_scale_sigma) ** 2
-            self.publish(self.pub_speed_scale, companion_bytes(stamp_to_sec(raw.header.stamp), ekf.speed_scale,
-                                                               variance, observed, self.base_frame))
+            t = stamp_to_sec(raw.header.stamp)
+            self.publish(self.pub_speed_scale, companion_bytes(t, ekf.speed_scale, variance, observed,
+                                                               self.base_frame))
+            if self.persisted.due(t):
+                self.persisted.save(t, {"scale": ekf.speed_scale, "variance": ekf.speed_scale_filter_variance})
+
+    def _resume_speed_scale(self) -> None:
+        loaded = self.persisted.resume()
+        if loaded is None:
+            return
+        stamp, state = loaded
+        try:
+            variance = self.ekf.resume_speed_scale(state["scale"], state["variance"])
+        except (KeyError, ValueError) as exc:
+            self.persisted.refuse(exc)
+            return
+        self.note_event(f"resumed the speed scale {state['scale']:.4f} +- {math.sqrt(variance):.4f} "
+                        f"(saved at stamp {stamp:.3f})")
 
     def _base_link(self, cov: np.ndarray) -> np.ndarray:
         Rm = self.ekf.mounting_rotation

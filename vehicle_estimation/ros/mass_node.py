@@ -50,7 +50,6 @@ reported in ``/diagnostics``, and the node starts from the prior.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import TwistWithCovarianceStamped, Vector3Stamped
@@ -65,7 +64,7 @@ from vehicle_estimation.estimators.mass.update_window import ACCEL_SOURCES, Upda
 from vehicle_estimation.estimators.registry import MASS_METHODS
 from vehicle_estimation.ros.conversions import (
     MalformedMessage, chassis_reading, forward_speed_entry, measured_speed, odometry_entry, powertrain_reading)
-from vehicle_estimation.ros.persistence import StateFileError, load_state, save_state
+from vehicle_estimation.ros.persistence import PersistedState
 from vehicle_estimation.ros.cdr import float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
@@ -104,13 +103,12 @@ class MassNode(EstimatorNode):
             self.core: MassEstimator = spec.build(self.vehicle, self.config)
         except ValueError as exc:
             raise ParameterError(str(exc)) from exc
-        self.persist_path = self.declare_str(
+        self.persisted = PersistedState(self, self.declare_str(
             "persist.path", "",
             "File the estimate and its covariance are saved to (atomically) and resumed from "
-            "after a restart; empty: off. The launcher sets it")
-        self.persist_period = self.declare_float(
-            "persist.period_s", 1.0, "Save period on the message clock [s]", 0.01, 3600.0)
-        self._last_persist = -math.inf
+            "after a restart; empty: off. The launcher sets it"), f"mass/{self.method}", self.vehicle.name,
+            self.declare_float("persist.period_s", 1.0, "Save period on the message clock [s]", 0.01, 3600.0),
+            "mass state")
         self.resumed_from: float | None = None
         self._resume_persisted()
         self.bias = FusionImuBias(self.vehicle.imu_mounting_rpy)
@@ -288,9 +286,8 @@ class MassNode(EstimatorNode):
         if t - self._last_pub >= 1.0 / self.rate - STAMP_TOLERANCE_S:
             self._last_pub = t
             self.publish_estimate(t)
-        if self.persist_path and t - self._last_persist >= self.persist_period - STAMP_TOLERANCE_S:
-            self._last_persist = t
-            self._persist(t)
+        if self.persisted.due(t):
+            self.persisted.save(t, self.core.state_dict())
 
     def _regressor_bias_variance(self, t: float, slope_item) -> float:
         """Variance of a lasting error in a + g sin(slope) [m^2/s^4]: the fusion's bias
@@ -335,33 +332,19 @@ class MassNode(EstimatorNode):
     # -------------------------------------------------------------- persistence
     def _resume_persisted(self) -> None:
         """Start from the last persisted estimate and covariance, if there is one."""
-        if not self.persist_path:
+        loaded = self.persisted.resume()
+        if loaded is None:
             return
+        stamp, state = loaded
         try:
-            loaded = load_state(Path(self.persist_path), f"mass/{self.method}")
-            if loaded is None:
-                self.note_event(f"no persisted mass state at {self.persist_path}: starting from the prior")
-                return
-            stamp, state, meta = loaded
-            if meta.get("vehicle") != self.vehicle.name:
-                raise StateFileError(f"state is for vehicle {meta.get('vehicle')!r}, not {self.vehicle.name!r}")
             self.core.load_state_dict(state)
-        except (StateFileError, ValueError) as exc:
-            self.reject("persist:unusable_state_file")
-            self.note_event(f"ignoring persisted mass state ({exc}): starting from the prior")
+        except ValueError as exc:
+            self.persisted.refuse(exc)
             self.core.reset()
             return
         self.resumed_from = stamp
         self.note_event(f"resumed from the persisted mass {self.core.mass:.1f} kg "
                         f"(variance {self.core.variance:.1f} kg^2, saved at stamp {stamp:.3f})")
-
-    def _persist(self, t: float) -> None:
-        try:
-            save_state(Path(self.persist_path), f"mass/{self.method}", t, self.core.state_dict(),
-                       vehicle=self.vehicle.name)
-        except (OSError, ValueError) as exc:
-            self.reject("persist:write_failed")
-            self.get_logger().error(f"cannot persist the mass state: {exc}", throttle_duration_sec=30.0)
 
     # -------------------------------------------------------------- outputs
     def publish_estimate(self, t: float) -> None:

@@ -18,6 +18,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from vehicle_estimation.ros.stamps import STAMP_TOLERANCE_S
+
 FORMAT = "vehicle_estimation.estimator_state"
 VERSION = 1
 
@@ -85,3 +87,51 @@ def load_state(path: Path, kind: str) -> tuple[float, dict[str, float], dict[str
     if not all(math.isfinite(v) for v in values.values()) or not math.isfinite(stamp):
         raise StateFileError(f"{path}: non-finite state")
     return stamp, values, {str(k): str(v) for k, v in meta.items()}
+
+
+class PersistedState:
+    """A node's state file: resumed once at start-up, saved every ``period_s`` of message time.
+
+    ``node`` gives ``reject(reason)`` (a counted rejection in ``/diagnostics``), ``note_event``
+    and ``get_logger``; ``what`` names the state in its messages. A file for another kind or
+    vehicle, or a damaged one, is refused, counted and named, and the node starts from its
+    prior; a failed write is counted and logged, never raised."""
+
+    def __init__(self, node: Any, path: str, kind: str, vehicle: str, period_s: float, what: str) -> None:
+        self.node, self.path, self.kind, self.vehicle = node, Path(path) if path else None, kind, vehicle
+        self.period_s, self.what = period_s, what
+        self._last_save = -math.inf
+
+    def resume(self) -> tuple[float, dict[str, float]] | None:
+        """``(stamp, state)`` of the file, or None (persistence off, no file, or refused)."""
+        if self.path is None:
+            return None
+        try:
+            loaded = load_state(self.path, self.kind)
+            if loaded is None:
+                self.node.note_event(f"no persisted {self.what} at {self.path}: starting from the prior")
+                return None
+            stamp, state, meta = loaded
+            if meta.get("vehicle") != self.vehicle:
+                raise StateFileError(f"state is for vehicle {meta.get('vehicle')!r}, not {self.vehicle!r}")
+        except StateFileError as exc:
+            self.refuse(exc)
+            return None
+        return stamp, state
+
+    def refuse(self, reason: Exception) -> None:
+        """A state that cannot be used (also one the estimator itself refuses on loading)."""
+        self.node.reject("persist:unusable_state_file")
+        self.node.note_event(f"ignoring persisted {self.what} ({reason}): starting from the prior")
+
+    def due(self, t: float) -> bool:
+        return self.path is not None and t - self._last_save >= self.period_s - STAMP_TOLERANCE_S
+
+    def save(self, t: float, state: dict[str, float]) -> None:
+        self._last_save = t
+        assert self.path is not None
+        try:
+            save_state(self.path, self.kind, t, state, vehicle=self.vehicle)
+        except (OSError, ValueError) as exc:
+            self.node.reject("persist:write_failed")
+            self.node.get_logger().error(f"cannot persist the {self.what}: {exc}", throttle_duration_sec=30.0)

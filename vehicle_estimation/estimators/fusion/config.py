@@ -187,6 +187,10 @@ class FusionConfig:
         10.0, "The scale is held this long after GNSS fixed the heading [s]: the first fixes settle "
         "the velocity and the attitude, which a freed scale would trade against (CommonRoad's 14 s "
         "lane change: slope within 2 sigma 90 -> 86 % with it freed at once)", low=0.0)
+    speed_scale_resume_sigma: float = setting(
+        0.003, "Added to the std of a scale resumed from an earlier drive (resume_speed_scale) [-]: "
+        "between drives the tyres' pressure and temperature move the rolling radius by a few tenths "
+        "of a percent", low=0.0)
     speed_scale_floor_sigma: float = setting(
         0.004, "Added to the published scale's std [-]: a speed in 1 km/h steps is off by one amount "
         "for as long as it keeps a value, 0.4 % at 70 km/h, and the filter, which takes that offset "

@@ -121,6 +121,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
             np.full(3, c.p0_accel_bias_sigma ** 2), np.full(3, c.p0_gyro_bias_sigma ** 2),
             np.full(2, c.p0_mounting_sigma ** 2 if c.estimate_mounting else 0.0),
             [c.p0_speed_scale_sigma ** 2 if c.estimate_speed_scale else 0.0]])
+        self._k0 = 0.0                     # k's prior mean (resume_speed_scale)
         self._Rm0 = quat_to_rotmat(quat_from_euler(*(float(a) for a in c.mounting_rpy)))  # imu_link -> base_link
         # Schmidt consider directions, rows (:meth:`_held_direction`): none, the yaw-rate bias
         # (the gyro bias along base_link z, in the IMU's axes by the nominal mounting), the scale
@@ -156,7 +157,7 @@ class FusionEKF(FusionInitialisation, FusionOutputs, FusionCompiledSteps):
         self._ba = np.zeros(3)
         self._bg = np.zeros(3)
         self._Rm = self._Rm0.copy()   # imu_link -> base_link (mounting)
-        self._speed_scale_error = np.zeros(1)   # k: CAN speed = (1 + k) v_x (the kernels add in place)
+        self._speed_scale_error = np.full(1, self._k0)   # k: CAN speed = (1 + k) v_x (kernels add in place)
         self._P = np.diag(self._p0_diag)
         self._F = np.eye(N_ERR)
         self._t: float | None = None  # last IMU stamp

@@ -23,7 +23,7 @@ import numpy as np
 from vehicle_estimation.estimators.common.rotations import (quat_from_euler, quat_multiply, quat_normalize,
                                                             quat_to_rotmat, rot_z)
 from vehicle_estimation.estimators.fusion.config import FusionConfig
-from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IP, IV, N_ERR, STATUS_ALIGNING,
+from vehicle_estimation.estimators.fusion.error_state import (IA, IBA, IBG, IK, IP, IV, N_ERR, STATUS_ALIGNING,
                                                               STATUS_RUNNING, STATUS_WAIT_HEADING,
                                                               STATUS_WAIT_STANDSTILL)
 
@@ -51,6 +51,8 @@ class FusionInitialisation:
     _bg: np.ndarray
     _P: np.ndarray
     _p0_diag: np.ndarray
+    _k0: float
+    _speed_scale_error: np.ndarray
     _t: float | None
     _hint: bool | None
     _last_speed: float | None
@@ -147,6 +149,27 @@ class FusionInitialisation:
         self._align_w.clear()
         self._heading_fixes = []
         self.status = STATUS_WAIT_HEADING
+
+    def resume_speed_scale(self, scale: float, variance: float) -> float:
+        """Start the CAN speed's scale (1 + k) from an earlier drive's estimate, now and after
+        every reset: the tyres' rolling radius outlives a drive, and without GNSS nothing in
+        this one can learn it (a fusion node persists it, ``persist.path``). The prior variance
+        becomes ``variance`` plus ``speed_scale_resume_sigma``^2 for what changed between the
+        drives (pressure, temperature), at most ``p0_speed_scale_sigma``^2: the resumed
+        variance, returned. Only before the first sample."""
+        c = self.config
+        if not c.estimate_speed_scale:
+            raise ValueError("resume_speed_scale needs estimate_speed_scale")
+        if self._t is not None:
+            raise ValueError("resume_speed_scale only before the first sample")
+        if not (math.isfinite(scale) and abs(scale - 1.0) <= 0.2 and math.isfinite(variance) and variance >= 0.0):
+            raise ValueError(f"not a speed scale: {scale} (variance {variance})")
+        resumed = min(variance + c.speed_scale_resume_sigma ** 2, c.p0_speed_scale_sigma ** 2)
+        self._k0 = scale - 1.0
+        self._p0_diag[IK] = resumed
+        self._speed_scale_error[0] = self._k0
+        self._P[IK, IK] = resumed
+        return resumed
 
     def _aligned_covariance(self) -> np.ndarray:
         """P0 after the accelerometer alignment, with the tilt/bias correlation it creates.

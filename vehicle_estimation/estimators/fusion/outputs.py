@@ -80,6 +80,12 @@ class FusionOutputs:
         return 1.0 + float(self._speed_scale_error[0])
 
     @property
+    def speed_scale_filter_variance(self) -> float:
+        """The filter's own variance of the scale, without the floor that publishing adds (what a
+        later drive resumes from, :meth:`resume_speed_scale`)."""
+        return float(self._P[IK, IK]) if self.config.estimate_speed_scale else 0.0
+
+    @property
     def speed_scale_variance(self) -> float:
         """Variance of :attr:`speed_scale` [-]: its prior until GNSS observes it, and always the
         quantised speed's lasting offset (``speed_scale_floor_sigma``); 0 when not estimated."""
