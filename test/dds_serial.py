@@ -63,11 +63,14 @@ _started_dds: list[str] = []
 
 
 def _replays_over_dds(argv: list[str]) -> bool:
-    if "--ros-args" in argv or any(Path(a).name == "colcon" for a in argv[:1]):
+    """A node process (``--ros-args``), or a ``vehicle-estimation`` command that starts nodes
+    over DDS."""
+    if "--ros-args" in argv:
         return True
-    if "vehicle_estimation" not in argv[:3] and not any(Path(a).name == "vehicle-estimation" for a in argv[:1]):
+    module = "vehicle_estimation" in argv[:3]          # python -m vehicle_estimation COMMAND
+    if not module and not (argv and Path(argv[0]).name == "vehicle-estimation"):
         return False
-    start = argv.index("vehicle_estimation") + 1 if "vehicle_estimation" in argv[:3] else 1
+    start = argv.index("vehicle_estimation") + 1 if module else 1
     command = argv[start] if start < len(argv) else ""
     return command not in _OFFLINE_COMMANDS and "--in-process" not in argv
 
