@@ -63,7 +63,7 @@ from vehicle_estimation.estimators.interfaces import MassEstimator
 from vehicle_estimation.estimators.mass.update_window import ACCEL_SOURCES, UpdateWindow
 from vehicle_estimation.estimators.registry import MASS_METHODS
 from vehicle_estimation.ros.conversions import (
-    MalformedMessage, chassis_reading, forward_speed_entry, measured_speed, odometry_entry, powertrain_reading)
+    MalformedMessage, chassis_reading, forward_speed_entry, odometry_entry, powertrain_reading)
 from vehicle_estimation.ros.persistence import PersistedState
 from vehicle_estimation.ros.cdr import float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
@@ -76,8 +76,8 @@ from vehicle_estimation.ros.runtime.upstream import (
     companion_bytes,
     companion_value,
     is_fresh,
+    measured_speed_at,
     speed_scale_at,
-    speed_scale_error_variance,
 )
 
 #: A powertrain reading above this multiple of what the vehicle's engine can deliver (maximum
@@ -246,8 +246,8 @@ class MassNode(EstimatorNode):
             return
         window = self.window
         if self.accel_source == "vehicle_state":
-            item = self.state_speed.at(t)
-            if item is not None and is_fresh(t, item[0]) and self._measured(t, item):
+            item = measured_speed_at(self.state_speed, t, self.speed_scale)
+            if item is not None:
                 window.add_state_speed(item[0], item[1])
         if speed is not None:
             brake = self._brake_at(t)
@@ -310,19 +310,13 @@ class MassNode(EstimatorNode):
         needs to know that it does not know)."""
         return self.brake_torque if is_fresh(t, self.brake_t) else unknown
 
-    def _measured(self, t: float, item: tuple[float, float, float]) -> bool:
-        """Whether the state node's vx at ``t`` is a measured speed (not dead-reckoned)."""
-        return measured_speed(item[1], item[2], speed_scale_error_variance(self.speed_scale, t))
-
     def _speed_at(self, t: float) -> float | None:
         if self.speed_source == "wheel_speed":
             item = self.wheel_speed
         elif self.speed_source == "fusion":
             item = self.odom_speed.at(t)
         else:
-            item = self.state_speed.at(t)
-            if item is not None and not self._measured(t, item):
-                item = None
+            item = measured_speed_at(self.state_speed, t, self.speed_scale)
         if item is not None and is_fresh(t, item[0]):
             return item[1]
         if self.can_speed is not None and is_fresh(t, self.can_speed[0]):

@@ -40,7 +40,7 @@ from std_msgs.msg import Float64
 from vehicle_estimation.contract import topics
 from vehicle_estimation.estimators.registry import SLOPE_METHODS
 from vehicle_estimation.estimators.slope.road_slope import GradeSample
-from vehicle_estimation.ros.conversions import forward_speed_entry, measured_speed, planar_velocity_entry
+from vehicle_estimation.ros.conversions import forward_speed_entry, planar_velocity_entry
 from vehicle_estimation.ros.cdr import float64_bytes
 from vehicle_estimation.ros.runtime.node import EstimatorNode
 from vehicle_estimation.ros.runtime.parameters import ParameterError, declared_by_a_method
@@ -52,7 +52,7 @@ from vehicle_estimation.ros.runtime.upstream import (
     companion_bytes,
     companion_value,
     is_fresh,
-    speed_scale_error_variance,
+    measured_speed_at,
 )
 
 #: Variance published while no estimate exists yet: a 10 deg 1-sigma prior.
@@ -121,12 +121,11 @@ class SlopeNode(EstimatorNode):
 
     def velocity_at(self, t: float) -> tuple[float, float] | None:
         """(vx, vy) for the observer: state node, else fusion (vy 0), else CAN (vy 0)."""
-        scale = speed_scale_error_variance(self.speed_scale, t)
-        item = self.state_speed.at(t)
-        if item is not None and is_fresh(t, item[0]) and measured_speed(item[1], item[3], scale):
+        item = measured_speed_at(self.state_speed, t, self.speed_scale)
+        if item is not None:
             return item[1], item[2]
-        item = self.odom_speed.at(t)
-        if item is not None and is_fresh(t, item[0]) and measured_speed(item[1], item[2], scale):
+        item = measured_speed_at(self.odom_speed, t, self.speed_scale)
+        if item is not None:
             return item[1], 0.0
         if self.can_speed is not None and is_fresh(t, self.can_speed[0]):
             return self.can_speed[1], 0.0

@@ -18,6 +18,7 @@ from rclpy.serialization import deserialize_message
 
 from vehicle_estimation.estimators.common.rotations import quat_to_rotmat, rotmat_from_euler
 from vehicle_estimation.ros.cdr import StampedLayout
+from vehicle_estimation.ros.conversions import measured_speed
 from vehicle_estimation.ros.stamps import sec_to_ns, stamp_to_sec
 
 #: An upstream value older than this, at the stamp it is wanted for, is missing [s].
@@ -123,6 +124,18 @@ def speed_scale_error_variance(history: UpstreamHistory, t: float) -> float:
     speed's published variance (a consider term). Without GNSS it is the fusion's prior, held.
     0 without a fresh estimate (no fusion: nothing is known of it)."""
     return _applied_speed_scale(history, t)[1]
+
+
+def measured_speed_at(history: UpstreamHistory, t: float, speed_scale: UpstreamHistory) -> tuple | None:
+    """The entry of ``history`` at ``t``, ``(stamp, vx, ..., vx variance)``
+    (:func:`~vehicle_estimation.ros.conversions.forward_speed_entry`,
+    :func:`~vehicle_estimation.ros.conversions.planar_velocity_entry`), if it is fresh and a
+    measured speed, not a dead-reckoned one (:func:`~vehicle_estimation.ros.conversions.measured_speed`,
+    with what the speed's scale adds taken out, ``speed_scale`` the fusion's); else None."""
+    item = history.at(t)
+    if item is None or not is_fresh(t, item[0]):
+        return None
+    return item if measured_speed(item[1], item[-1], speed_scale_error_variance(speed_scale, t)) else None
 
 
 def _applied_speed_scale(history: UpstreamHistory, t: float) -> tuple[float, float]:
